@@ -1,0 +1,55 @@
+"""The ``companion`` command line.
+
+Each subcommand lives in its own module, which provides ``configure_parser(parser)`` and
+``main(args) -> int``; this file only routes to them, importing a module when its command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("companion.demo", "closed-loop demo: simulated vehicle + daemon + ground station, writes a report"),
+    "run": ("companion.daemon", "run the service (the systemd unit runs this)"),
+    "sim": ("drivers.sim.vehicle", "simulated multirotor that speaks MAVLink (ArduPilot or PX4 flavour)"),
+    "replay": ("companion.replay", "run the mapper over a recording as fast as possible"),
+    "ground": ("drivers.ground_station", "ground-station subscriber: reassembles the map from Zenoh"),
+    "config": ("companion.config_cli", "print the default configuration or check a file"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="companion", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module_name, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module_name)
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name and module_name.startswith(exc.name):
+                p.set_defaults(_missing=True)
+                continue
+            raise
+        module.configure_parser(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not args.command:
+        parser.print_help()
+        return 2
+    if getattr(args, "_missing", False):
+        print(f"companion {args.command}: not available in this build yet", file=sys.stderr)
+        return 2
+    module = importlib.import_module(args._module)
+    return int(module.main(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

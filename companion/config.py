@@ -1,0 +1,339 @@
+"""Typed configuration, loaded once from YAML and validated.
+
+Every section is a frozen dataclass. A field's ``metadata`` may carry ``unit`` (documentation),
+``min``/``max`` (inclusive bounds) and ``choices``. :func:`load_config` reads a YAML file,
+merges it over the defaults, and raises :class:`ConfigError` naming the file and the dotted
+key for any unknown key, wrong type or out-of-range value, so the daemon refuses to start
+rather than guess.
+
+Sections own their keys: ``link`` (autopilot MAVLink), ``nav`` (covariance floors),
+``camera`` (source, intrinsics, mount), ``mapper``, ``terrain``, ``avoidance``,
+``control``, ``zenoh``, ``persistence``, ``sim``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration problem; the message names the file and the dotted key."""
+
+
+def _f(default: Any, unit: str = "", lo: float | None = None, hi: float | None = None, doc: str = ""):
+    """A dataclass field with documentation metadata and inclusive bounds."""
+    meta = {"unit": unit, "min": lo, "max": hi, "doc": doc}
+    if isinstance(default, (list, dict)):
+        raise TypeError("use tuples for sequence defaults")
+    return field(default=default, metadata=meta)
+
+
+# --------------------------------------------------------------------------------------------
+# Sections
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class LinkConfig:
+    """Autopilot link (pymavlink connection string as MAVProxy/mavlink-router users write it)."""
+
+    connection: str = _f("udpin:127.0.0.1:14550", doc="udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT or a serial device")
+    baud: int = _f(921600, "bit/s", 1200, 10_000_000, "serial baud rate (ignored for network links)")
+    source_system: int = _f(1, "", 1, 255, "our MAVLink system id (normally the vehicle's)")
+    source_component: int = _f(191, "", 1, 255, "our component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)")
+    target_system: int = _f(0, "", 0, 255, "autopilot system id; 0 = the first autopilot heard")
+    autopilot: Literal["auto", "ardupilot", "px4"] = _f("auto", doc="autopilot flavour; auto = from HEARTBEAT")
+    heartbeat_rate_hz: float = _f(1.0, "Hz", 0.1, 10.0)
+    nav_stream_rate_hz: float = _f(50.0, "Hz", 1.0, 400.0, "requested rate of navigation messages")
+    heartbeat_timeout_s: float = _f(3.0, "s", 0.5, 60.0, "autopilot heartbeat silence that counts as link lost")
+    reconnect_backoff_max_s: float = _f(5.0, "s", 0.1, 300.0)
+    signing_key_file: str = _f("", doc="MAVLink 2 signing key file (32 bytes or 64 hex chars); empty = no signing")
+    signing_required: bool = _f(False, doc="reject unsigned/badly signed messages")
+
+
+@dataclass(frozen=True, slots=True)
+class NavConfig:
+    """Navigation covariance floors (used when the autopilot reports less, or nothing)."""
+
+    position_sigma_floor_m: float = _f(0.3, "m", 0.0, 100.0)
+    velocity_sigma_floor_mps: float = _f(0.1, "m/s", 0.0, 100.0)
+    attitude_sigma_floor_deg: float = _f(0.5, "deg", 0.0, 45.0)
+    stale_after_s: float = _f(0.5, "s", 0.01, 10.0, "navigation older than this stops commanding")
+    buffer_s: float = _f(5.0, "s", 0.1, 120.0, "history kept for interpolation at frame times")
+
+
+@dataclass(frozen=True, slots=True)
+class CameraConfig:
+    """Camera source, pinhole intrinsics (pixels), OpenCV distortion and the mount on the body."""
+
+    source: Literal["v4l2", "file", "synthetic"] = _f("synthetic")
+    device: str = _f("/dev/video0", doc="V4L2 device path or index")
+    path: str = _f("", doc="recorded source: video file or image folder")
+    realtime: bool = _f(True, doc="recorded source: replay at the recorded rate (false = as fast as possible)")
+    width: int = _f(640, "px", 16, 8192)
+    height: int = _f(480, "px", 16, 8192)
+    rate_hz: float = _f(20.0, "Hz", 0.5, 500.0)
+    pixel_format: str = _f("GREY", doc="V4L2 FOURCC (GREY, YUYV, MJPG)")
+    exposure_us: float = _f(0.0, "us", 0.0, 1e6, "0 = automatic")
+    fx: float = _f(625.3, "px", 1.0, 1e5, "focal length along u (paper f_u); default = 42 deg vertical FOV at 480 px")
+    fy: float = _f(625.3, "px", 1.0, 1e5)
+    cx: float = _f(319.5, "px", -1e4, 1e4)
+    cy: float = _f(239.5, "px", -1e4, 1e4)
+    distortion: tuple[float, ...] = _f((0.0, 0.0, 0.0, 0.0, 0.0), doc="OpenCV k1 k2 p1 p2 [k3 ...]")
+    mount_roll_deg: float = _f(0.0, "deg", -180.0, 180.0, "camera axes relative to the body (FRD), ZYX Euler")
+    mount_pitch_deg: float = _f(-45.0, "deg", -90.0, 90.0, "-45 = optical axis 45 deg below the nose")
+    mount_yaw_deg: float = _f(0.0, "deg", -180.0, 180.0)
+    mount_offset_m: tuple[float, ...] = _f((0.0, 0.0, 0.0), "m", doc="camera centre in body FRD")
+    border_px: int = _f(8, "px", 0, 1000, "features closer than this to the image edge (or a black mask) are ignored")
+
+
+@dataclass(frozen=True, slots=True)
+class MapperConfig:
+    """Monocular terrain mapper (seed 000, section II)."""
+
+    parameterisation: Literal["inverse_depth", "cartesian"] = _f("inverse_depth")
+    max_features: int = _f(50, "", 1, 5000, "feature database capacity (paper: 50)")
+    max_detections: int = _f(100, "", 1, 10000, "Harris corners passed on per frame, in score order")
+    bins_x: int = _f(8, "", 1, 64)
+    bins_y: int = _f(6, "", 1, 64)
+    per_bin: int = _f(4, "", 1, 1000, "maximum corners per bin")
+    min_distance_px: float = _f(10.0, "px", 0.0, 1000.0)
+    harris_k: float = _f(0.04, "", 0.0, 0.25)
+    harris_block_size: int = _f(3, "px", 2, 31)
+    harris_quality: float = _f(0.01, "", 0.0, 1.0, "minimum response relative to the frame's best")
+    pixel_sigma_px: float = _f(1.0, "px", 0.01, 100.0, "R_img = sigma^2 I")
+    gate_chi2: float = _f(9.21, "", 0.1, 1000.0, "Z_lim: chi-square 2 dof (9.21 = 99%)")
+    sigma_rho: float = _f(0.05, "1/m", 1e-6, 10.0, "inverse-depth prior sigma at initialisation")
+    sigma_depth_rel: float = _f(0.5, "", 1e-3, 10.0, "Cartesian baseline: depth prior sigma relative to depth")
+    converged_rel_depth_sigma: float = _f(0.1, "", 1e-4, 1.0, "converged when sigma_depth / depth falls below this")
+    confidence_max: int = _f(100, "", 1, 10000)
+    init_index_max: float = _f(20.0, "", 0.0, 10000.0, "initialisation index when nothing matched")
+
+
+@dataclass(frozen=True, slots=True)
+class TerrainConfig:
+    """Evidence grid of terrain altitudes (seed 000, section II.E)."""
+
+    cell_size_m: float = _f(1.0, "m", 0.05, 100.0)
+    tile_cells: int = _f(32, "cells", 4, 1024, "tile edge length in cells")
+    default_ground_alt_m: float = _f(0.0, "m", -1e4, 1e4, "altitude (up, local NED origin) assumed before the map knows")
+
+
+@dataclass(frozen=True, slots=True)
+class AvoidanceConfig:
+    """Pull-up / push-over law (seed 000, section III)."""
+
+    clearance_m: float = _f(15.0, "m", 0.0, 1000.0, "h_c")
+    accel_mps2: float = _f(1.0, "m/s^2", 0.01, 50.0, "a_c, vertical acceleration the law may ask for")
+    miss_distance_m: float = _f(5.0, "m", 0.0, 1000.0, "horizontal miss distance (corridor half-width)")
+    lookahead_m: float = _f(100.0, "m", 1.0, 10000.0)
+    max_climb_mps: float = _f(3.0, "m/s", 0.0, 50.0)
+    max_descent_mps: float = _f(2.0, "m/s", 0.0, 50.0)
+    nominal_alt_m: float = _f(15.0, "m", -1e4, 1e4, "altitude to return to after an obstacle (up, local frame)")
+
+
+@dataclass(frozen=True, slots=True)
+class ControlConfig:
+    """Fixed-rate control loop and commanding policy."""
+
+    rate_hz: float = _f(20.0, "Hz", 1.0, 200.0)
+    commanding_enabled: bool = _f(False, doc="false = advisory: publish the setpoint, command nothing")
+    allow_arm: bool = _f(False, doc="the service may arm the vehicle (sim/demo only)")
+    allow_mode_change: bool = _f(False, doc="the service may switch to GUIDED / OFFBOARD (sim/demo only)")
+    cruise_speed_mps: float = _f(6.0, "m/s", 0.0, 50.0)
+    waypoints_ne_m: tuple[tuple[float, float], ...] = _f((), "m", doc="horizontal route (north, east) flown when commanding")
+
+
+@dataclass(frozen=True, slots=True)
+class ZenohConfig:
+    """Zenoh session and keys."""
+
+    enabled: bool = _f(True)
+    mode: Literal["peer", "client"] = _f("peer")
+    listen: tuple[str, ...] = _f((), doc="endpoints, e.g. tcp/127.0.0.1:7447")
+    connect: tuple[str, ...] = _f((), doc="endpoints, e.g. tcp/192.168.1.10:7447")
+    multicast_scouting: bool = _f(False)
+    vehicle_name: str = _f("vehicle1", doc="key prefix: companion/<vehicle_name>/...")
+    status_rate_hz: float = _f(1.0, "Hz", 0.1, 50.0)
+    config_file: str = _f("", doc="extra Zenoh JSON5 config (TLS, access control) merged under ours")
+
+
+@dataclass(frozen=True, slots=True)
+class PersistenceConfig:
+    """Map snapshots."""
+
+    directory: str = _f("/var/lib/companion", doc="where map snapshots live")
+    snapshot_interval_s: float = _f(10.0, "s", 0.5, 3600.0)
+
+
+@dataclass(frozen=True, slots=True)
+class SimConfig:
+    """Simulated world (used by the synthetic camera and the simulated vehicle)."""
+
+    scenario: str = _f("default", doc="name in config/scenarios/ or a path to a YAML scenario")
+    seed: int = _f(1, "", 0, 2**31 - 1)
+    speedup: float = _f(1.0, "", 0.1, 1000.0, "simulated seconds per wall-clock second")
+
+
+@dataclass(frozen=True, slots=True)
+class CompanionConfig:
+    link: LinkConfig = field(default_factory=LinkConfig)
+    nav: NavConfig = field(default_factory=NavConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    mapper: MapperConfig = field(default_factory=MapperConfig)
+    terrain: TerrainConfig = field(default_factory=TerrainConfig)
+    avoidance: AvoidanceConfig = field(default_factory=AvoidanceConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    persistence: PersistenceConfig = field(default_factory=PersistenceConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+
+# --------------------------------------------------------------------------------------------
+# Loading and validation
+# --------------------------------------------------------------------------------------------
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
+    """Check ``value`` against type ``tp``; return it converted (lists -> tuples, int -> float)."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: '{key}' must be a mapping of {tp.__name__} keys, got {type(value).__name__}")
+        return _build(tp, value, key, where)
+    if origin is Literal:
+        if value not in args:
+            raise ConfigError(f"{where}: '{key}' must be one of {', '.join(map(repr, args))}, got {value!r}")
+        return value
+    if origin in (types.UnionType, typing.Union):
+        errors = []
+        for alternative in args:
+            if alternative is type(None):
+                if value is None:
+                    return None
+                continue
+            try:
+                return _coerce(value, alternative, key, where)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(errors[0] if errors else f"{where}: '{key}' has an invalid value {value!r}")
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: '{key}' must be a list, got {type(value).__name__}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{key}[{i}]", where) for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"{where}: '{key}' must have {len(args)} elements, got {len(value)}")
+        return tuple(_coerce(v, a, f"{key}[{i}]", where) for i, (v, a) in enumerate(zip(value, args)))
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: '{key}' must be true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: '{key}' must be an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: '{key}' must be a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{where}: '{key}' must be finite, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: '{key}' must be a string, got {value!r}")
+        return value
+    raise ConfigError(f"{where}: '{key}' has unsupported type {_type_name(tp)}")  # pragma: no cover
+
+
+def _check_range(value: Any, f: dataclasses.Field, key: str, where: str) -> None:
+    lo, hi = f.metadata.get("min"), f.metadata.get("max")
+    values = value if isinstance(value, tuple) else (value,)
+    for v in values:
+        if isinstance(v, tuple) or isinstance(v, (str, bool)) or v is None:
+            continue
+        unit = f.metadata.get("unit") or ""
+        if lo is not None and v < lo:
+            raise ConfigError(f"{where}: '{key}' = {v} is below the minimum {lo} {unit}".rstrip())
+        if hi is not None and v > hi:
+            raise ConfigError(f"{where}: '{key}' = {v} is above the maximum {hi} {unit}".rstrip())
+
+
+def _build(cls: type, data: dict, prefix: str, where: str):
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        full = [f"{prefix}.{k}" if prefix else str(k) for k in unknown]
+        raise ConfigError(f"{where}: unknown key {', '.join(repr(k) for k in full)} (known: {', '.join(sorted(fields))})")
+    kwargs = {}
+    for name, value in data.items():
+        key = f"{prefix}.{name}" if prefix else name
+        kwargs[name] = _coerce(value, hints[name], key, where)
+        _check_range(kwargs[name], fields[name], key, where)
+    return cls(**kwargs)
+
+
+def config_from_dict(data: dict | None, where: str = "<dict>") -> CompanionConfig:
+    """Validate a plain mapping (as parsed from YAML) into a :class:`CompanionConfig`."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: the top level must be a mapping of sections")
+    return _build(CompanionConfig, data, "", where)
+
+
+def load_config(path: str | Path) -> CompanionConfig:
+    """Load and validate a YAML configuration file. Missing keys take their defaults."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read configuration: {exc.strerror or exc}") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    return config_from_dict(data, str(path))
+
+
+def replace(cfg: Any, **changes: Any) -> Any:
+    """``dataclasses.replace`` for nested sections: ``replace(cfg, **{"mapper.max_features": 300})``."""
+    nested: dict[str, dict[str, Any]] = {}
+    direct = {}
+    for key, value in changes.items():
+        head, _, rest = key.partition(".")
+        if rest:
+            nested.setdefault(head, {})[rest] = value
+        else:
+            direct[key] = value
+    for head, sub in nested.items():
+        direct[head] = replace(getattr(cfg, head), **sub)
+    return dataclasses.replace(cfg, **direct)
+
+
+def describe(cls: type = CompanionConfig, prefix: str = "") -> list[tuple[str, Any, str, str]]:
+    """(dotted key, default, unit, doc) for every leaf key, for documentation and tests."""
+    rows = []
+    instance = cls()
+    for f in dataclasses.fields(cls):
+        key = f"{prefix}.{f.name}" if prefix else f.name
+        value = getattr(instance, f.name)
+        if dataclasses.is_dataclass(value):
+            rows.extend(describe(type(value), key))
+        else:
+            rows.append((key, value, f.metadata.get("unit", ""), f.metadata.get("doc", "")))
+    return rows
