@@ -57,6 +57,13 @@ class LinkConfig:
     reconnect_backoff_max_s: float = _f(5.0, "s", 0.1, 300.0)
     signing_key_file: str = _f("", doc="MAVLink 2 signing key file (32 bytes or 64 hex chars); empty = no signing")
     signing_required: bool = _f(False, doc="reject unsigned/badly signed messages")
+    connect_timeout_s: float = _f(3.0, "s", 0.1, 60.0, "TCP connect attempt limit")
+    aux_stream_rate_hz: float = _f(5.0, "Hz", 0.1, 50.0, "requested rate of EKF_STATUS_REPORT, ESTIMATOR_STATUS, GPS_RAW_INT")
+    timesync_rate_hz: float = _f(1.0, "Hz", 0.1, 10.0, "TIMESYNC round trips per second (SYSTEM_TIME is requested at the same rate)")
+    stream_check_s: float = _f(3.0, "s", 0.5, 60.0, "a requested stream silent this long is requested again (with backoff)")
+    command_timeout_s: float = _f(1.0, "s", 0.05, 30.0, "wait for COMMAND_ACK before resending")
+    command_retries: int = _f(3, "", 1, 20, "COMMAND_LONG attempts before giving up")
+    request_sim_state: bool = _f(False, doc="also request SIM_STATE (simulator truth) for a synthetic camera")
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,6 +75,11 @@ class NavConfig:
     attitude_sigma_floor_deg: float = _f(0.5, "deg", 0.0, 45.0)
     stale_after_s: float = _f(0.5, "s", 0.01, 10.0, "navigation older than this stops commanding")
     buffer_s: float = _f(5.0, "s", 0.1, 120.0, "history kept for interpolation at frame times")
+    buffer_max_gap_s: float = _f(0.5, "s", 0.01, 60.0, "no interpolation across a gap in the navigation longer than this")
+    buffer_extrapolate_s: float = _f(0.05, "s", 0.0, 5.0, "how far past the newest navigation a frame time may be extrapolated")
+    max_skew_s: float = _f(0.1, "s", 0.001, 5.0, "position and attitude further apart than this are not combined into a state")
+    covariance_max_age_s: float = _f(2.0, "s", 0.05, 60.0, "covariance evidence (*_COV, EKF/GPS status) older than this is not used")
+    innovation_ratio_good: float = _f(0.5, "", 0.01, 10.0, "test ratio below which the EKF_STATUS_REPORT/ESTIMATOR_STATUS heuristic leaves sigmas unscaled")
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,6 +105,14 @@ class CameraConfig:
     mount_yaw_deg: float = _f(0.0, "deg", -180.0, 180.0)
     mount_offset_m: tuple[float, ...] = _f((0.0, 0.0, 0.0), "m", doc="camera centre in body FRD")
     border_px: int = _f(8, "px", 0, 1000, "features closer than this to the image edge (or a black mask) are ignored")
+    timestamps_file: str = _f("", doc="recorded source: timestamp file; empty = frames.csv / timestamps.txt in the folder, <video>.csv beside a video, else the video's frame rate")
+    reconnect_backoff_max_s: float = _f(5.0, "s", 0.05, 300.0, "V4L2: longest wait between reopen attempts after the device is lost")
+    blank_std_max: float = _f(1.0, "grey levels", 0.0, 255.0, "frames whose pixel standard deviation is at most this (all black, white or flat) are rejected; 0 = off")
+    gap_factor: float = _f(3.0, "frame periods", 1.5, 1e6, "an interval longer than this many frame periods is counted as a gap")
+    record_format: Literal["png", "jpg"] = _f("png", doc="--record image format: png is lossless")
+    record_png_compression: int = _f(-1, "", -1, 9, "--record PNG zlib level; -1 = OpenCV's default (fast)")
+    record_jpeg_quality: int = _f(95, "", 1, 100, "--record JPEG quality")
+    record_queue_frames: int = _f(64, "frames", 1, 10000, "--record queue; frames beyond it are dropped and counted, never waited for")
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,6 +129,8 @@ class MapperConfig:
     harris_k: float = _f(0.04, "", 0.0, 0.25)
     harris_block_size: int = _f(3, "px", 2, 31)
     harris_quality: float = _f(0.01, "", 0.0, 1.0, "minimum response relative to the frame's best")
+    harris_min_response: float = _f(1e-8, "", 0.0, 1.0, "absolute response floor (OpenCV's 8-bit scaling; 1e-8 ~ a 7-grey-level step corner)")
+    subpix_window_px: int = _f(3, "px", 0, 15, "half-size of the sub-pixel corner refinement window; 0 = integer pixels")
     pixel_sigma_px: float = _f(1.0, "px", 0.01, 100.0, "R_img = sigma^2 I")
     gate_chi2: float = _f(9.21, "", 0.1, 1000.0, "Z_lim: chi-square 2 dof (9.21 = 99%)")
     sigma_rho: float = _f(0.05, "1/m", 1e-6, 10.0, "inverse-depth prior sigma at initialisation")
@@ -116,6 +138,9 @@ class MapperConfig:
     converged_rel_depth_sigma: float = _f(0.1, "", 1e-4, 1.0, "converged when sigma_depth / depth falls below this")
     confidence_max: int = _f(100, "", 1, 10000)
     init_index_max: float = _f(20.0, "", 0.0, 10000.0, "initialisation index when nothing matched")
+    converge_min_updates: int = _f(3, "", 1, 10000, "EKF updates a feature needs before it may count as converged")
+    prior_min_range_m: float = _f(1.0, "m", 0.01, 1e4, "depth prior ranges are clipped to at least this")
+    prior_max_range_m: float = _f(200.0, "m", 1.0, 1e6, "range given to rays that miss the ground (rho = 1/this)")
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,6 +150,14 @@ class TerrainConfig:
     cell_size_m: float = _f(1.0, "m", 0.05, 100.0)
     tile_cells: int = _f(32, "cells", 4, 1024, "tile edge length in cells")
     default_ground_alt_m: float = _f(0.0, "m", -1e4, 1e4, "altitude (up, local NED origin) assumed before the map knows")
+    spread_sigma: float = _f(2.0, "sigma", 0.5, 5.0, "a point's horizontal covariance spreads it over the cells within this many sigma")
+    max_spread_cells: int = _f(3, "cells", 0, 16, "largest spread radius around a point's own cell")
+    min_height_sigma_m: float = _f(0.05, "m", 1e-4, 100.0, "floor on a point's height sigma (no point is exact)")
+    gate_sigma: float = _f(3.0, "sigma", 0.5, 100.0, "a point further than this from a cell's estimate (innovation sigma) is rejected there")
+    gate_min_count: int = _f(2, "points", 1, 1_000_000, "the gate applies once a cell holds this much evidence")
+    reset_evidence: float = _f(3.0, "points", 0.1, 1e6, "rejected evidence, uncontradicted, after which a cell takes the new height")
+    process_noise_m2: float = _f(1e-4, "m^2", 0.0, 100.0, "added to a cell's variance before each update, so the map can forget")
+    max_abs_coordinate_m: float = _f(1e6, "m", 1.0, 1e8, "points further from the local origin are rejected as invalid")
 
 
 @dataclass(frozen=True, slots=True)
@@ -138,6 +171,9 @@ class AvoidanceConfig:
     max_climb_mps: float = _f(3.0, "m/s", 0.0, 50.0)
     max_descent_mps: float = _f(2.0, "m/s", 0.0, 50.0)
     nominal_alt_m: float = _f(15.0, "m", -1e4, 1e4, "altitude to return to after an obstacle (up, local frame)")
+    nominal_time_constant_s: float = _f(1.5, "s", 0.05, 60.0, "near the nominal altitude the return is exponential with this time constant")
+    hover_speed_mps: float = _f(0.3, "m/s", 0.0, 10.0, "below this horizontal speed the look-ahead is a disc around the vehicle")
+    unknown_fill_m: float = _f(5.0, "m", 0.0, 1000.0, "an unmapped cell is taken as high as the highest mapped cell within this along-track distance in the corridor")
 
 
 @dataclass(frozen=True, slots=True)
@@ -164,6 +200,8 @@ class ZenohConfig:
     vehicle_name: str = _f("vehicle1", doc="key prefix: companion/<vehicle_name>/...")
     status_rate_hz: float = _f(1.0, "Hz", 0.1, 50.0)
     config_file: str = _f("", doc="extra Zenoh JSON5 config (TLS, access control) merged under ours")
+    reconnect_min_s: float = _f(1.0, "s", 0.05, 60.0, "first retry after a connect endpoint is unreachable (doubles each try)")
+    reconnect_max_s: float = _f(4.0, "s", 0.05, 600.0, "longest wait between connection retries")
 
 
 @dataclass(frozen=True, slots=True)
@@ -181,6 +219,33 @@ class SimConfig:
     scenario: str = _f("default", doc="name in config/scenarios/ or a path to a YAML scenario")
     seed: int = _f(1, "", 0, 2**31 - 1)
     speedup: float = _f(1.0, "", 0.1, 1000.0, "simulated seconds per wall-clock second")
+    # --- simulated vehicle (drivers/sim/vehicle.py, docs/sim.md) ---
+    flavour: Literal["ardupilot", "px4"] = _f("ardupilot", doc="which autopilot the simulated vehicle imitates")
+    physics_rate_hz: float = _f(400.0, "Hz", 50.0, 2000.0, "fixed physics step of the simulated vehicle (simulated time)")
+    nav_rate_hz: float = _f(50.0, "Hz", 1.0, 400.0, "update rate of the navigation error, wind gusts and failsafe checks")
+    origin_delay_s: float = _f(15.0, "s", 0.0, 600.0, "EKF origin (and GPS fix) this long after boot; no LOCAL_POSITION_NED before")
+    accel_h_mps2: float = _f(3.0, "m/s^2", 0.1, 20.0, "horizontal acceleration limit of the velocity reference")
+    accel_v_mps2: float = _f(2.5, "m/s^2", 0.1, 20.0, "vertical acceleration limit of the velocity reference")
+    speed_h_mps: float = _f(15.0, "m/s", 0.1, 50.0, "horizontal speed limit")
+    climb_mps: float = _f(5.0, "m/s", 0.1, 20.0, "climb rate limit")
+    descent_mps: float = _f(3.0, "m/s", 0.1, 20.0, "descent rate limit")
+    tilt_max_deg: float = _f(35.0, "deg", 5.0, 70.0, "lean angle limit")
+    pos_gain_per_s: float = _f(1.0, "1/s", 0.05, 10.0, "position loop P gain")
+    vel_gain_per_s: float = _f(2.5, "1/s", 0.1, 20.0, "velocity loop P gain")
+    drag_per_s: float = _f(0.3, "1/s", 0.0, 5.0, "linear air drag (acceleration per m/s of airspeed)")
+    wind_ned_mps: tuple[float, float, float] = _f((0.0, 0.0, 0.0), "m/s", -50.0, 50.0, "steady wind (north, east, down)")
+    gust_sigma_mps: float = _f(0.0, "m/s", 0.0, 20.0, "gust standard deviation per horizontal axis (Gauss-Markov, from the seed)")
+    gust_tau_s: float = _f(3.0, "s", 0.1, 600.0, "gust correlation time")
+    nav_pos_sigma_h_m: float = _f(0.5, "m", 0.0, 100.0, "injected navigation error: horizontal position sigma per axis")
+    nav_pos_sigma_v_m: float = _f(0.8, "m", 0.0, 100.0, "injected navigation error: vertical position sigma")
+    nav_vel_sigma_mps: float = _f(0.1, "m/s", 0.0, 10.0, "injected navigation error: velocity sigma per axis")
+    nav_tilt_sigma_deg: float = _f(0.5, "deg", 0.0, 30.0, "injected navigation error: roll/pitch sigma")
+    nav_yaw_sigma_deg: float = _f(2.0, "deg", 0.0, 90.0, "injected navigation error: yaw sigma")
+    nav_pos_tau_s: float = _f(10.0, "s", 0.01, 3600.0, "correlation time of the position error")
+    nav_vel_tau_s: float = _f(2.0, "s", 0.01, 3600.0, "correlation time of the velocity error")
+    nav_att_tau_s: float = _f(5.0, "s", 0.01, 3600.0, "correlation time of the attitude error")
+    gps_noise_m: float = _f(0.2, "m", 0.0, 100.0, "white noise of the simulated GPS fix about the navigation estimate")
+    gps_vel_noise_mps: float = _f(0.05, "m/s", 0.0, 10.0, "white noise of the simulated GPS velocity")
 
 
 @dataclass(frozen=True, slots=True)

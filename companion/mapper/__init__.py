@@ -1,0 +1,9 @@
+"""Monocular terrain mapper (seed 000, section II): features -> EKF -> converged terrain points.
+
+See docs/mapper.md for the equations as implemented.
+"""
+
+from companion.mapper.depth_prior import DepthPrior, flat_ground_ranges
+from companion.mapper.mapper import FeatureSnapshot, Mapper, MapperStep
+
+__all__ = ["DepthPrior", "FeatureSnapshot", "Mapper", "MapperStep", "flat_ground_ranges"]

@@ -1,0 +1,126 @@
+"""Cartesian feature parameterisation: the baseline the paper compares against (figs. 2 vs 3).
+
+Feature state ``y = X = [x, y, z]`` (NED, m). Same measurement model (eqs. 3-4 with ``rho = 1``
+and no anchor), same update, matching and database as the inverse-depth mapper; only the state,
+its Jacobians and its initialisation differ. A new feature is placed at the prior range along
+its ray with a depth spread ``sigma_depth_rel * range`` along the ray, which is the Gaussian the
+Cartesian filter has to assume for an unknown depth (the reason it converges slower).
+
+Every function is batched over N features and has the signature of its
+:mod:`companion.mapper.inverse_depth` counterpart; ``R_ref`` is carried but unused by the model.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.geometry import PinholeCamera, skew
+from companion.mapper.inverse_depth import reference_rotation
+from companion.mapper.projection import CameraPose, camera_ray_from_pixel, pixel_jacobian
+
+STATE_DIM = 3
+
+__all__ = [
+    "STATE_DIM",
+    "reference_rotation",
+    "camera_vector",
+    "measurement_model",
+    "measurement_jacobian",
+    "initialise_features",
+    "point_from_state",
+    "relative_depth_sigma",
+    "normalise_state",
+]
+
+
+def camera_vector(y: np.ndarray, R_ref: np.ndarray, pose: CameraPose) -> np.ndarray:
+    """``h^c = R_nc^T (X - p_c)`` (N, 3)."""
+    return (np.asarray(y, dtype=float) - pose.p_c) @ pose.R_nc
+
+
+def measurement_model(
+    y: np.ndarray, R_ref: np.ndarray, pose: CameraPose, camera: PinholeCamera
+) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted ideal pixels (N, 2) (NaN behind the camera) and ``h^c`` (N, 3)."""
+    h_c = camera_vector(y, R_ref, pose)
+    return camera.project(h_c), h_c
+
+
+def measurement_jacobian(
+    y: np.ndarray, R_ref: np.ndarray, pose: CameraPose, camera: PinholeCamera, h_c: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``C_x`` (N, 2, 6) and ``C_y`` (N, 2, 3): ``dh/dX = R_nc^T``, ``dh/dp = -R_nc^T``,
+    ``dh/d(dtheta) = R_nc^T [X - p]x``, chained with ``dg/dh``."""
+    y = np.asarray(y, dtype=float)
+    if h_c is None:
+        h_c = camera_vector(y, R_ref, pose)
+    G = pixel_jacobian(h_c, camera)
+    RT = pose.R_nc.T
+    dh_dx = np.empty((len(y), 3, 6))
+    dh_dx[:, :, 0:3] = -RT
+    dh_dx[:, :, 3:6] = RT @ skew(y - pose.p)
+    return G @ dh_dx, G @ RT
+
+
+def initialise_features(
+    uv: np.ndarray,
+    ranges: np.ndarray,
+    pose: CameraPose,
+    camera: PinholeCamera,
+    R_img: np.ndarray,
+    sigma_depth_rel: float,
+    P_x: np.ndarray,
+    R_ref: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``X = p_c + r m_world`` with ``m_world = R_nc h / |h|``; the covariance in the form of eq. 17::
+
+        P = J_z R_img J_z^T + (sigma_depth_rel r)^2 m m^T + J_x P_x J_x^T
+
+    ``J_z = r R_nc (I - h_u h_u^T) (dh/dz) / |h|``, ``J_x = [I, -[X - p]x]``.
+    Returns ``y`` (N, 3), ``P`` (N, 3, 3), ``R_ref`` (N, 3, 3) (stored, unused).
+    """
+    h, dh_dz = camera_ray_from_pixel(uv, camera)
+    n = len(h)
+    if R_ref is None:
+        R_ref = np.broadcast_to(reference_rotation(pose.R_nc), (n, 3, 3)).copy()
+    r = np.asarray(ranges, dtype=float).reshape(n)
+    norm = np.linalg.norm(h, axis=1)
+    h_u = h / norm[:, None]
+    m_w = h_u @ pose.R_nc.T
+    X = pose.p_c + r[:, None] * m_w
+
+    proj = (np.eye(3) - h_u[:, :, None] * h_u[:, None, :]) / norm[:, None, None]
+    J_z = r[:, None, None] * (pose.R_nc @ proj @ dh_dz)  # (N, 3, 2)
+    J_x = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), -skew(X - pose.p)], axis=2)
+    sigma_d = sigma_depth_rel * r
+    P = (
+        J_z @ R_img @ np.swapaxes(J_z, 1, 2)
+        + (sigma_d**2)[:, None, None] * (m_w[:, :, None] * m_w[:, None, :])
+        + J_x @ P_x @ np.swapaxes(J_x, 1, 2)
+    )
+    return X, 0.5 * (P + np.swapaxes(P, 1, 2)), R_ref
+
+
+def point_from_state(y: np.ndarray, R_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The state is the point: ``X`` (N, 3), ``J = I`` (N, 3, 3)."""
+    y = np.asarray(y, dtype=float)
+    return y.copy(), np.broadcast_to(np.eye(3), (len(y), 3, 3)).copy()
+
+
+def relative_depth_sigma(y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Sigma along the ray from ``origin`` (N, 3; camera centre at initialisation) over the range (N,).
+
+    Measured from the initial camera, like the inverse-depth ``sigma_rho / rho`` (depth from the
+    anchor), so the two parameterisations are held to the same convergence test.
+    """
+    d = np.asarray(y, dtype=float) - origin
+    r = np.linalg.norm(d, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = d / r[:, None]
+        var = np.einsum("ni,nij,nj->n", u, P, u)
+        return np.where(r > 0, np.sqrt(np.maximum(var, 0.0)) / r, np.inf)
+
+
+def normalise_state(y: np.ndarray) -> np.ndarray:
+    """Nothing to wrap in a Cartesian state. (N, 3) -> (N, 3)."""
+    return np.array(y, dtype=float)

@@ -1,0 +1,488 @@
+"""Harris corner detector with bins, a per-bin cap and a minimum separation (seed 000, II.C).
+
+The paper: "a modified Harris corner detector ... partitions the image into bins, and sets a
+maximum number of features in each bin. Also, a minimum distance between features can be set.
+The feature locations are passed to the mapping algorithm in order of their Harris corner
+score, up to a maximum number."
+
+Pipeline for one grey frame (``H x W``, ``uint8``):
+
+1. ``harris_response``: OpenCV's Harris response ``R = det(M) - k tr(M)^2`` per pixel.
+2. ``candidate_maxima``: 3x3 local maxima of ``R`` above ``max(quality * R_best, floor)``,
+   inside the valid region (image edges, a caller's mask and black borders eroded by the
+   margin). OpenCV does the image-wide work; NumPy only sees the few hundred maxima.
+3. ``select_features``: in descending score order, the greedy minimum-distance suppression
+   (a feature is dropped when a stronger *kept* feature lies closer than ``min_distance_px``,
+   across bin borders too), then at most ``per_bin`` per bin, then at most ``max_detections``.
+4. ``refine_corners``: sub-pixel corner position (Förstner's gradient-orthogonality least
+   squares, vectorised over the features), then ``select_features`` again on the refined
+   positions so every guarantee holds for what is returned.
+
+Coordinates are raw pixels, ``x`` = column, ``y`` = row, pixel centres at integers (OpenCV's
+and :class:`companion.geometry.PinholeCamera`'s convention).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import cv2
+import numpy as np
+
+from companion.config import MapperConfig
+
+__all__ = ["HarrisDetector", "detect_corners", "select_features", "suppress_within", "refine_corners"]
+
+SOBEL_APERTURE = 3  # cornerHarris' derivative kernel; the response at a pixel sees block//2 + 1 around it
+_REFINE_ITERATIONS = 2  # re-centre the refinement window once: Harris peaks sit up to ~2 px off the corner
+_CONDITION_MIN = 1e-3  # det(A) / tr(A)^2 below this = edge or flat patch: keep the integer position
+
+_EMPTY_UV = np.zeros((0, 2))
+_EMPTY_SCORE = np.zeros(0)
+
+
+# --------------------------------------------------------------------------------------------
+# Input checking
+# --------------------------------------------------------------------------------------------
+
+
+def as_gray(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Grey ``uint8 (H, W)`` from a grey ``(H, W)`` / ``(H, W, 1)`` or BGR ``(H, W, 3)`` ``uint8``
+    image. Anything else raises :class:`ValueError` naming what is wrong."""
+    if not isinstance(image, np.ndarray):
+        raise ValueError(f"image must be a numpy array, got {type(image).__name__}")
+    if image.dtype != np.uint8:
+        raise ValueError(f"image must be uint8 (8-bit grey or BGR), got dtype {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 3 and image.shape[2] == 3:
+        if image.shape[0] == 0 or image.shape[1] == 0:
+            raise ValueError(f"image is empty, shape {image.shape}")
+        return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_BGR2GRAY, dst=out)
+    if image.ndim != 2:
+        raise ValueError(f"image must be (H, W) grey or (H, W, 3) BGR, got shape {image.shape}")
+    if image.size == 0:
+        raise ValueError(f"image is empty, shape {image.shape}")
+    return np.ascontiguousarray(image)
+
+
+def _as_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A caller's validity mask (non-zero = usable) as ``uint8 (H, W)`` 0/255."""
+    mask = np.asarray(mask)
+    if mask.shape != shape:
+        raise ValueError(f"mask shape {mask.shape} does not match the image shape {shape}")
+    if not (mask.dtype == bool or np.issubdtype(mask.dtype, np.integer)):
+        raise ValueError(f"mask must be bool or integer (non-zero = usable), got dtype {mask.dtype}")
+    return np.where(mask != 0, np.uint8(255), np.uint8(0))
+
+
+def effective_margin(cfg: MapperConfig, border_px: int) -> int:
+    """Margin (px) kept from image edges and masked or black regions: ``border_px``, but never
+    less than the detector's own reach (the Harris window and the refinement window), so that
+    nothing outside the valid region shapes a returned corner."""
+    if border_px < 0:
+        raise ValueError(f"border_px must be >= 0, got {border_px}")
+    reach = max(cfg.harris_block_size // 2 + SOBEL_APERTURE // 2, cfg.subpix_window_px + 1)
+    return max(int(np.ceil(border_px)), reach)
+
+
+# --------------------------------------------------------------------------------------------
+# Valid region
+# --------------------------------------------------------------------------------------------
+
+
+def _erode(valid: np.ndarray, margin: int) -> np.ndarray:
+    """Pixels with no invalid pixel in the ``(2 margin + 1)^2`` box around them (uint8 0/255).
+    The image edge itself is handled separately (OpenCV's erosion ignores outside pixels)."""
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * margin + 1, 2 * margin + 1))
+    return cv2.erode(valid, kernel)
+
+
+def _window_max(a: np.ndarray, margin: int) -> np.ndarray:
+    """Sliding maximum of a non-negative 1-D integer array over ``[i - margin, i + margin]``
+    (0 outside), by a 1-D grey dilation."""
+    col = a.astype(np.float32).reshape(-1, 1)
+    kernel = np.ones((2 * margin + 1, 1), np.uint8)
+    out = cv2.dilate(col, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0.0)
+    return out.reshape(-1).astype(np.int64)
+
+
+def _first_nonzero(lines: np.ndarray, none: int) -> np.ndarray:
+    """Index of the first non-zero pixel of each row of ``lines (k, n)``; ``none`` if all zero."""
+    nz = lines != 0
+    return np.where(nz.any(axis=1), nz.argmax(axis=1), none)
+
+
+def black_border_valid(gray: np.ndarray, margin: int, out: np.ndarray | None = None) -> np.ndarray | None:
+    """Valid-pixel mask (``uint8 (H, W)``, non-zero = usable) excluding black (value 0) borders,
+    or ``None`` if the frame has no border that reaches past the plain edge margin.
+
+    A black border is a zero pixel reachable from the image edge along its row or its column
+    through zero pixels only (undistorted frames, fisheye circles, letterboxing). Black pixels
+    inside the picture (a shadow, a dark window) are texture, not border, and are kept. A pixel
+    is valid when no border pixel lies in the ``(2 margin + 1)^2`` box around it. In row ``y``
+    the border is ``x < left[y]`` or ``x > right[y]`` (first and last non-zero column), in
+    column ``x`` it is ``y < top[x]`` or ``y > bottom[x]``, so the test reduces to sliding
+    maxima of four 1-D border depths.
+    """
+    H, W = gray.shape
+    rows_l = np.flatnonzero(gray[:, 0] == 0)
+    rows_r = np.flatnonzero(gray[:, -1] == 0)
+    cols_t = np.flatnonzero(gray[0] == 0)
+    cols_b = np.flatnonzero(gray[-1] == 0)
+    if rows_l.size + rows_r.size + cols_t.size + cols_b.size == 0:
+        return None  # no zero on the image edge: no border to reach
+    # Border depth seen from each side, per line (0 = no border on that line), then the
+    # deepest within +-margin lines: the valid interval of a row is [x_lo, x_hi], of a column
+    # [y_lo, y_hi]. Only the lines that start with a zero are scanned.
+    x_lo = np.full(H, margin, np.int64)
+    x_hi = np.full(H, W - 1 - margin, np.int64)
+    y_lo = np.full(W, margin, np.int64)
+    y_hi = np.full(W, H - 1 - margin, np.int64)
+    for lines, n_lines, length, scan, lo, hi in (
+        (rows_l, H, W, lambda i: gray[i], x_lo, None),
+        (rows_r, H, W, lambda i: gray[i, ::-1], None, x_hi),
+        (cols_t, W, H, lambda i: gray[:, i].T, y_lo, None),
+        (cols_b, W, H, lambda i: gray[::-1, i].T, None, y_hi),
+    ):
+        if lines.size == 0:
+            continue
+        depth = np.zeros(n_lines, np.int64)
+        depth[lines] = _first_nonzero(scan(lines), length)
+        deepest = _window_max(depth, margin)
+        if lo is not None:
+            lo += deepest
+        else:
+            hi -= deepest
+    rows = np.flatnonzero((x_lo > margin) | (x_hi < W - 1 - margin))
+    cols = np.flatnonzero((y_lo > margin) | (y_hi < H - 1 - margin))
+    if rows.size + cols.size == 0:
+        return None  # the border is thinner than the edge margin, which is applied anyway
+    if out is None:
+        out = np.empty((H, W), np.uint8)
+    out.fill(255)
+    if rows.size:
+        xs = np.arange(W)[None, :]
+        out[rows] = (xs >= x_lo[rows, None]) & (xs <= x_hi[rows, None])
+    if cols.size:
+        ys = np.arange(H)[:, None]
+        out[:, cols] &= (ys >= y_lo[None, cols]) & (ys <= y_hi[None, cols])
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Selection: greedy minimum distance, per-bin cap, maximum count
+# --------------------------------------------------------------------------------------------
+
+
+def _close_pairs(xy: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
+    """All pairs ``(i, j)``, ``i < j``, of points ``xy (K, 2)`` closer than ``d``.
+
+    With the points sorted by ``x``, the partners of a point lie in one contiguous run
+    (``|dx| < d``) found by ``searchsorted``; only those runs are tested, not all ``K^2`` pairs."""
+    x = xy[:, 0]
+    order = np.argsort(x, kind="stable")
+    xs = x[order]
+    start = np.searchsorted(xs, x - d, side="right")
+    count = np.searchsorted(xs, x + d, side="left") - start
+    src = np.repeat(np.arange(len(xy)), count)
+    first = np.cumsum(count) - count
+    dst = order[np.arange(src.size) - np.repeat(first - start, count)]
+    keep = src < dst
+    src, dst = src[keep], dst[keep]
+    diff = xy[src] - xy[dst]
+    close = np.einsum("ij,ij->i", diff, diff) < d * d
+    return src[close], dst[close]
+
+
+def suppress_within(xy: np.ndarray, d: float) -> np.ndarray:
+    """Greedy minimum-distance suppression of points ``xy (K, 2)`` given in descending score
+    order: point ``j`` is kept unless a *kept* point ``i < j`` lies closer than ``d``.
+    Returns a bool ``(K,)`` mask, identical to the sequential greedy loop.
+
+    The sequential loop is replaced by rounds over the conflict pairs: a point whose stronger
+    neighbours are all dropped is kept, a point with a kept stronger neighbour is dropped, the
+    rest wait. Each round decides at least the strongest undecided point; in practice a few
+    rounds decide all."""
+    K = len(xy)
+    kept = np.zeros(K, bool)
+    if K == 0 or d <= 0:
+        kept[:] = True
+        return kept
+    hi, lo = _close_pairs(xy, d)
+    dropped = np.zeros(K, bool)
+    for _ in range(K):  # bounded: each round decides at least one point
+        undecided = ~(kept | dropped)
+        if not undecided.any():
+            break
+        blocked = np.zeros(K, bool)
+        blocked[lo[kept[hi]]] = True
+        waiting = np.zeros(K, bool)
+        waiting[lo[undecided[hi]]] = True
+        dropped |= undecided & blocked
+        kept |= undecided & ~blocked & ~waiting
+        live = ~(kept[lo] | dropped[lo]) & ~dropped[hi]  # pairs that can still decide something
+        hi, lo = hi[live], lo[live]
+    return kept
+
+
+def _bin_rank(xy: np.ndarray, width: int, height: int, bins_x: int, bins_y: int) -> np.ndarray:
+    """Rank ``(K,)`` of each point within its bin, points given in descending score order."""
+    if len(xy) == 0:
+        return np.zeros(0, np.int64)
+    bx = np.minimum((xy[:, 0] * (bins_x / width)).astype(np.int64), bins_x - 1)
+    by = np.minimum((xy[:, 1] * (bins_y / height)).astype(np.int64), bins_y - 1)
+    b = by * bins_x + bx  # coordinates are >= 0 inside the image
+    order = np.argsort(b, kind="stable")  # stable: score order inside each bin
+    sb = b[order]
+    new_group = np.empty(len(sb), bool)
+    new_group[0] = True
+    np.not_equal(sb[1:], sb[:-1], out=new_group[1:])
+    # position of each point's group start, carried forward over the group
+    group_start = np.maximum.accumulate(np.where(new_group, np.arange(len(sb)), 0))
+    rank = np.empty(len(b), np.int64)
+    rank[order] = np.arange(len(sb)) - group_start
+    return rank
+
+
+def satisfies_selection(xy: np.ndarray, cfg: MapperConfig, width: int, height: int) -> bool:
+    """True when points ``xy (N, 2)`` in score order already meet the minimum distance, the
+    per-bin cap and the maximum count (a cheap check for the few refined features)."""
+    n = len(xy)
+    if n > cfg.max_detections:
+        return False
+    if n < 2:
+        return True
+    diff = xy[:, None, :] - xy[None, :, :]
+    d2 = np.einsum("ijk,ijk->ij", diff, diff)
+    d2[np.diag_indices(n)] = np.inf
+    if cfg.min_distance_px > 0 and d2.min() < cfg.min_distance_px**2:
+        return False
+    return bool(_bin_rank(xy, width, height, cfg.bins_x, cfg.bins_y).max() < cfg.per_bin)
+
+
+def select_features(xy: np.ndarray, cfg: MapperConfig, width: int, height: int) -> np.ndarray:
+    """Indices of the features to pass on, from points ``xy (K, 2)`` in descending score order
+    (seed 000, II.C): greedy minimum distance, then at most ``per_bin`` per bin, then at most
+    ``max_detections``; the result is in score order.
+
+    The greedy decisions for the strongest ``T`` points do not depend on weaker ones, so the
+    work starts on a prefix and grows it only when the prefix yields too few features."""
+    K = len(xy)
+    T = min(K, max(2 * cfg.max_detections, 64))
+    while True:
+        keep = suppress_within(xy[:T], cfg.min_distance_px)
+        idx = np.flatnonzero(keep)
+        idx = idx[_bin_rank(xy[idx], width, height, cfg.bins_x, cfg.bins_y) < cfg.per_bin]
+        if len(idx) >= cfg.max_detections or T == K:
+            return idx[: cfg.max_detections]
+        T = min(K, 4 * T)
+
+
+# --------------------------------------------------------------------------------------------
+# Sub-pixel refinement
+# --------------------------------------------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=16)
+def _refine_window(window: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Constants of the refinement window: flat offsets of the ``(2w+3)^2`` patch in an image of
+    ``width`` columns, Gaussian weights and x/y offsets of the inner ``(2w+1)^2`` pixels."""
+    off = np.arange(-window - 1, window + 2)
+    patch = (off[:, None] * width + off[None, :]).ravel()
+    o = off[1:-1].astype(np.float32)
+    sigma = 0.5 * (window + 1)
+    wgt = np.exp(-(o[:, None] ** 2 + o[None, :] ** 2) / (2.0 * sigma**2)).astype(np.float32).ravel()
+    return patch, wgt, np.tile(o, o.size), np.repeat(o, o.size)
+
+
+def refine_corners(gray: np.ndarray, xy0: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel corner positions near integer pixels ``xy0 (N, 2)`` (Förstner).
+
+    Around a corner ``q`` every image gradient ``g_i`` at pixel ``p_i`` is orthogonal to
+    ``p_i - q`` (on an edge) or zero (in a flat area), so ``q`` minimises
+    ``sum_i w_i (g_i . (p_i - q))^2``, i.e. ``A q = b`` with ``A = sum w g g^T`` and
+    ``b = sum w g g^T p``. Gradients by central differences in a ``(2 window + 1)^2`` patch with
+    Gaussian weights ``w``; the patch is re-centred once on the rounded solution (Harris peaks
+    of blurred L-corners sit up to ~2 px inside the corner).
+
+    Returns ``xy (N, 2)`` float64 and ``ok (N,)``: ``False`` where the patch is an edge or flat
+    (``A`` ill-conditioned) or the solution left the window; there ``xy`` is ``xy0``.
+    """
+    H, W = gray.shape
+    N = len(xy0)
+    S = 2 * window + 3
+    patch, wgt, ox, oy = _refine_window(window, W)
+    flat = gray.reshape(-1)
+    # keep the whole patch inside the image (the caller's margin normally does already)
+    lo = np.array([window + 1, window + 1])
+    hi = np.array([W - window - 2, H - window - 2])
+    centre = np.minimum(np.maximum(xy0.astype(np.int64), lo), hi)
+    q = np.zeros((N, 2))
+    ok = np.ones(N, bool)
+    for _ in range(_REFINE_ITERATIONS):
+        P = flat[(centre[:, 1] * W + centre[:, 0])[:, None] + patch].astype(np.float32).reshape(N, S, S)
+        # central differences without the 1/2: A and b scale alike, q does not change
+        gx = (P[:, 1:-1, 2:] - P[:, 1:-1, :-2]).reshape(N, -1)
+        gy = (P[:, 2:, 1:-1] - P[:, :-2, 1:-1]).reshape(N, -1)
+        G = np.stack([gx, gy], axis=1)  # (N, 2, M)
+        Gw = G * wgt
+        A = (Gw @ G.transpose(0, 2, 1)).astype(np.float64)  # (N, 2, 2)
+        b = (Gw @ (gx * ox + gy * oy)[:, :, None])[:, :, 0].astype(np.float64)  # (N, 2)
+        a, c, h = A[:, 0, 0], A[:, 1, 1], A[:, 0, 1]
+        det = a * c - h * h
+        ok = det > _CONDITION_MIN * (a + c) ** 2
+        q = np.stack([c * b[:, 0] - h * b[:, 1], a * b[:, 1] - h * b[:, 0]], axis=1) / np.where(ok, det, 1.0)[:, None]
+        ok &= np.abs(q).max(axis=1) <= window
+        q[~ok] = 0.0
+        step = np.rint(q).astype(np.int64)
+        centre = np.minimum(np.maximum(centre + step, lo), hi)
+        q -= step
+    xy = centre + q
+    ok &= np.abs(xy - xy0).max(axis=1) <= window
+    return np.where(ok[:, None], xy, xy0.astype(np.float64)), ok
+
+
+# --------------------------------------------------------------------------------------------
+# The detector
+# --------------------------------------------------------------------------------------------
+
+
+class HarrisDetector:
+    """Binned Harris detector for frames of one size; callable ``detector(image) -> (uv, score)``.
+
+    Buffers (response, dilation, candidate mask), the eroded static mask and the margins are
+    prepared once here; a call allocates only what depends on the frame's content.
+
+    Parameters: ``cfg`` (``max_detections``, ``bins_x``, ``bins_y``, ``per_bin``,
+    ``min_distance_px``, ``harris_k``, ``harris_block_size``, ``harris_quality``,
+    ``harris_min_response``, ``subpix_window_px``); frame ``width`` and ``height`` (px);
+    ``border_px`` kept from the image edges and from masked or black-border regions; optional
+    static ``mask (H, W)`` (non-zero = usable), e.g. a vignetting or airframe mask.
+    """
+
+    def __init__(self, cfg: MapperConfig, width: int, height: int, border_px: int = 0, mask: np.ndarray | None = None):
+        if int(width) < 1 or int(height) < 1:
+            raise ValueError(f"frame size must be positive, got {width}x{height}")
+        self.cfg = cfg
+        self.width, self.height = int(width), int(height)
+        self.border_px = border_px
+        self.margin = effective_margin(cfg, border_px)
+        shape = (self.height, self.width)
+        self._gray = np.empty(shape, np.uint8)  # BGR -> grey target
+        self._response = np.empty(shape, np.float32)
+        self._dilated = np.empty(shape, np.float32)
+        self._border_valid = np.empty(shape, np.uint8)
+        # The candidate mask lives in a buffer padded to whole 8-byte words so that its non-zero
+        # pixels can be found word by word (candidates are sparse).
+        n = self.height * self.width
+        self._words = np.zeros((n + 7) // 8, np.uint64)
+        self._cand = self._words.view(np.uint8)[:n].reshape(shape)
+        self._kernel3 = np.ones((3, 3), np.uint8)
+        self._static_valid = None if mask is None else _erode(_as_mask(mask, shape), self.margin)
+        # Image-edge margin for the sub-pixel positions: in_image semantics (u >= border_px).
+        self._edge = float(border_px)
+        self.n_candidates = 0  # local maxima above threshold in the last frame (diagnostics)
+
+    # -- pipeline steps, in order -------------------------------------------------------------
+
+    def harris_response(self, gray: np.ndarray) -> np.ndarray:
+        """``R = det(M) - k tr(M)^2`` per pixel, float32 ``(H, W)`` (OpenCV, 8-bit scaling)."""
+        return cv2.cornerHarris(gray, self.cfg.harris_block_size, SOBEL_APERTURE, self.cfg.harris_k, dst=self._response)
+
+    def valid_region(self, gray: np.ndarray) -> np.ndarray | None:
+        """Valid-pixel mask (non-zero = usable) from the static mask and any black border, or
+        ``None`` when only the image-edge margin applies."""
+        border = black_border_valid(gray, self.margin, out=self._border_valid)
+        if border is None:
+            return self._static_valid
+        if self._static_valid is None:
+            return border
+        return cv2.bitwise_and(border, self._static_valid, dst=border)
+
+    def candidate_maxima(self, R: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Integer ``xy (K, 2)`` and ``score (K,)`` of the 3x3 local maxima of ``R`` above the
+        threshold inside the valid region, in descending score order."""
+        m, H, W = self.margin, self.height, self.width
+        if 2 * m >= H or 2 * m >= W:
+            return np.zeros((0, 2), np.int64), _EMPTY_SCORE
+        if valid is None:
+            best = cv2.minMaxLoc(R[m : H - m, m : W - m])[1]
+        else:
+            best = cv2.minMaxLoc(R, valid)[1]
+        threshold = max(self.cfg.harris_quality * best, self.cfg.harris_min_response)
+        if not best > 0.0 or best < threshold:
+            return np.zeros((0, 2), np.int64), _EMPTY_SCORE
+        # R >= max(3x3 neighbourhood, just above the threshold): a local maximum strictly above
+        # it (so a flat response, R == threshold == 0, is never a corner)
+        D = cv2.dilate(R, self._kernel3, dst=self._dilated)
+        cv2.max(D, np.float64(np.nextafter(np.float32(threshold), np.float32(np.inf))), dst=D)
+        cand = self._cand
+        cv2.compare(R, D, cv2.CMP_GE, dst=cand)
+        if valid is not None:
+            cv2.bitwise_and(cand, valid, dst=cand)
+        cand[:m] = 0
+        cand[H - m :] = 0
+        cand[:, :m] = 0
+        cand[:, W - m :] = 0
+        # non-zero pixels, one 8-byte word at a time: cheap because candidates are sparse
+        words = (self._words != 0).nonzero()[0]
+        r, c = np.nonzero(self._words.view(np.uint8).reshape(-1, 8)[words])
+        flat = words[r] * 8 + c
+        ys, xs = np.divmod(flat, W)
+        score = R[ys, xs].astype(np.float64)
+        order = np.argsort(-score, kind="stable")
+        return np.column_stack([xs[order], ys[order]]), score[order]
+
+    def refine(self, gray: np.ndarray, xy0: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
+        """Sub-pixel positions ``(N, 2)``; a refined position that leaves the valid region falls
+        back to its integer pixel (which is valid)."""
+        w = self.cfg.subpix_window_px
+        if w <= 0 or len(xy0) == 0:
+            return xy0.astype(np.float64)
+        xy, _ = refine_corners(gray, xy0, w)
+        e = self._edge
+        inside = (xy[:, 0] >= e) & (xy[:, 0] <= self.width - 1 - e) & (xy[:, 1] >= e) & (xy[:, 1] <= self.height - 1 - e)
+        if valid is not None:
+            px = np.rint(xy).astype(np.int64)
+            px[:, 0] = np.clip(px[:, 0], 0, self.width - 1)
+            px[:, 1] = np.clip(px[:, 1], 0, self.height - 1)
+            inside &= valid[px[:, 1], px[:, 0]] != 0
+        return np.where(inside[:, None], xy, xy0.astype(np.float64))
+
+    def __call__(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``uv (N, 2)`` float64 raw pixels (x = column, y = row, sub-pixel) and Harris
+        ``score (N,)`` float64, descending, ``N <= max_detections``."""
+        gray = as_gray(image, out=self._gray)  # out is used only for BGR input
+        if gray.shape != (self.height, self.width):
+            raise ValueError(f"image is {gray.shape[1]}x{gray.shape[0]}, detector built for {self.width}x{self.height}")
+        R = self.harris_response(gray)
+        valid = self.valid_region(gray)
+        xy, score = self.candidate_maxima(R, valid)
+        self.n_candidates = len(xy)
+        if len(xy) == 0:
+            return _EMPTY_UV.copy(), _EMPTY_SCORE.copy()
+        cfg = self.cfg
+        idx = select_features(xy.astype(np.float64), cfg, self.width, self.height)
+        uv = self.refine(gray, xy[idx], valid)
+        score = score[idx]
+        # refinement moves points by up to the window: re-apply every guarantee to the result
+        if satisfies_selection(uv, cfg, self.width, self.height):
+            return uv, score
+        again = select_features(uv, cfg, self.width, self.height)
+        return uv[again], score[again]
+
+
+def detect_corners(
+    image: np.ndarray, cfg: MapperConfig, border_px: int = 0, mask: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Binned Harris corners of one frame (seed 000, II.C).
+
+    ``image``: ``uint8`` grey ``(H, W)`` or BGR ``(H, W, 3)``; ``mask``: optional ``(H, W)``,
+    non-zero = usable. Returns ``uv (N, 2)`` float64 raw pixels (x = column, y = row,
+    sub-pixel) and ``score (N,)`` float64 Harris response, descending, ``N <= max_detections``.
+    For a stream of frames build a :class:`HarrisDetector` once instead.
+    """
+    gray = as_gray(image)
+    H, W = gray.shape
+    return HarrisDetector(cfg, W, H, border_px, mask)(gray)

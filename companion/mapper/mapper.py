@@ -1,0 +1,352 @@
+"""The monocular terrain mapper: one step per camera frame (seed 000, section II, fig. 1).
+
+``step_measurements(nav, uv)``: validate the navigation state -> drop bad measurements -> predict
+every stored feature (eqs. 3-4) and drop those that left the view -> gate and match (eqs. 10-12)
+-> batched EKF update of the matched features (eqs. 6-9) -> confidence indices -> convergence ->
+initialise unmatched measurements (eqs. 13-17) into free or replaceable slots. Converged features
+come out as :class:`~companion.messages.TerrainPoints`.
+
+Emission rule: a feature is emitted once when it first converges, and once more, with its final
+(better) estimate, when it leaves the database (out of view or replaced) if it had converged. Its
+id is the same both times, so the terrain map can replace the first contribution with the second.
+
+The core is pure: no I/O, no logging; everything worth knowing is counted in :class:`MapperStep`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from types import ModuleType
+
+import numpy as np
+
+from companion.config import MapperConfig
+from companion.geometry import CameraMount, PinholeCamera
+from companion.mapper import cartesian, inverse_depth
+from companion.mapper.database import FeatureDatabase
+from companion.mapper.depth_prior import DepthPrior, prior_ranges
+from companion.mapper.matching import gate_and_match, innovation_covariance, mahalanobis_distances
+from companion.mapper.projection import CameraPose, camera_ray_from_pixel
+from companion.mapper.update import ekf_update
+from companion.messages import NavState, TerrainPoints
+
+Detector = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+PARAMETERISATIONS: dict[str, ModuleType] = {"inverse_depth": inverse_depth, "cartesian": cartesian}
+
+
+def _empty_ids() -> np.ndarray:
+    return np.zeros(0, dtype=np.int64)
+
+
+def _concatenate(t_s: float, parts: list[TerrainPoints]) -> TerrainPoints:
+    parts = [p for p in parts if len(p)]
+    if not parts:
+        return TerrainPoints.empty(t_s)
+    return TerrainPoints(
+        t_s,
+        np.concatenate([p.positions_ned_m for p in parts]),
+        np.concatenate([p.covariances for p in parts]),
+        np.concatenate([p.feature_ids for p in parts]),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class MapperStep:
+    """What one mapper step did.
+
+    points: converged features emitted this step. n_measurements: measurements given;
+    n_matched: features updated; n_initialised: new features; n_removed: features dropped (out of
+    view, replaced or corrupt); n_active: features stored after the step; n_rejected: measurements
+    dropped (``n_dropped``) plus refused feature updates (``n_update_rejected``).
+    rejected_reason: non-empty when the whole step was refused (the database is untouched).
+    n_ambiguous: measurements inside a gate but not matched (neither used nor initialised).
+    n_prior_fallback: new features whose depth prior fell back to flat ground.
+    init_index: the frame's initialisation confidence index.
+    matched_ids / matched_measurements (K,): feature ids and the indices (into the input array) of
+    the measurements that updated them; initialised_ids / initialised_measurements likewise.
+    """
+
+    points: TerrainPoints
+    n_measurements: int
+    n_matched: int
+    n_initialised: int
+    n_removed: int
+    n_active: int
+    n_rejected: int
+    rejected_reason: str = ""
+    n_dropped: int = 0
+    n_update_rejected: int = 0
+    n_ambiguous: int = 0
+    n_prior_fallback: int = 0
+    init_index: float = 0.0
+    matched_ids: np.ndarray = field(default_factory=_empty_ids)
+    matched_measurements: np.ndarray = field(default_factory=_empty_ids)
+    initialised_ids: np.ndarray = field(default_factory=_empty_ids)
+    initialised_measurements: np.ndarray = field(default_factory=_empty_ids)
+
+
+@dataclass(frozen=True, slots=True)
+class FeatureSnapshot:
+    """The stored features (for status, displays and tests).
+
+    ids (N,) int64; positions_ned_m (N, 3) (NaN if the inverse depth is not positive);
+    covariances (N, 3, 3); relative_depth_sigma (N,); converged (N,) bool; confidence (N,) int;
+    updates (N,) accepted EKF updates; states (N, D) raw feature states.
+    """
+
+    ids: np.ndarray
+    positions_ned_m: np.ndarray
+    covariances: np.ndarray
+    relative_depth_sigma: np.ndarray
+    converged: np.ndarray
+    confidence: np.ndarray
+    updates: np.ndarray
+    states: np.ndarray
+
+
+def check_nav(nav: NavState) -> str:
+    """Why ``nav`` cannot be used by the mapper, or ``""`` if it can."""
+    try:
+        p = np.asarray(nav.position_ned_m, dtype=float)
+        q = np.asarray(nav.quaternion_wxyz, dtype=float)
+        cov = np.asarray(nav.covariance, dtype=float)
+    except (TypeError, ValueError):
+        return "nav not numeric"
+    if p.shape != (3,) or q.shape != (4,) or cov.shape != (9, 9):
+        return f"nav shapes wrong: position {p.shape}, quaternion {q.shape}, covariance {cov.shape}"
+    if not nav.is_finite() or not np.isfinite(nav.t_s):
+        return "nav not finite"
+    if np.linalg.norm(q) < 1e-6:
+        return "nav quaternion has zero norm"
+    P_x = nav.pose_covariance
+    scale = max(1.0, float(np.max(np.abs(P_x))))
+    if np.max(np.abs(P_x - P_x.T)) > 1e-6 * scale:
+        return "nav pose covariance not symmetric"
+    if np.min(np.linalg.eigvalsh(0.5 * (P_x + P_x.T))) < -1e-9 * scale:
+        return "nav pose covariance not positive semi-definite"
+    return ""
+
+
+class Mapper:
+    """Monocular feature mapper with a fixed-capacity database (seed 000, section II).
+
+    cfg: :class:`MapperConfig` (``parameterisation`` picks inverse depth or the Cartesian
+    baseline). camera / mount: intrinsics and mounting. depth_prior: ray-cast prior for new
+    features (settable; ``None`` = flat ground at ``default_ground_alt_m``). detector: image ->
+    (raw pixels (N, 2), scores (N,)) in score order, used by :meth:`step`; defaults to the Harris
+    detector in :mod:`companion.mapper.features`. border_px: passed to the default detector.
+    """
+
+    def __init__(
+        self,
+        cfg: MapperConfig,
+        camera: PinholeCamera,
+        mount: CameraMount,
+        depth_prior: DepthPrior | None = None,
+        default_ground_alt_m: float = 0.0,
+        detector: Detector | None = None,
+        border_px: int = 0,
+    ):
+        if cfg.parameterisation not in PARAMETERISATIONS:
+            raise ValueError(f"mapper.parameterisation must be one of {sorted(PARAMETERISATIONS)}, got {cfg.parameterisation!r}")
+        if cfg.prior_min_range_m >= cfg.prior_max_range_m:
+            raise ValueError("mapper.prior_min_range_m must be below mapper.prior_max_range_m")
+        self.cfg = cfg
+        self.camera = camera
+        self.mount = mount
+        self.depth_prior = depth_prior
+        self.default_ground_alt_m = float(default_ground_alt_m)
+        self.detector = detector
+        self.border_px = int(border_px)
+        self.model = PARAMETERISATIONS[cfg.parameterisation]
+        self.prior_sigma = cfg.sigma_rho if cfg.parameterisation == "inverse_depth" else cfg.sigma_depth_rel
+        self.R_img = np.diag([cfg.pixel_sigma_px**2, cfg.pixel_sigma_px**2])
+        self.db = FeatureDatabase(cfg.max_features, self.model.STATE_DIM)
+        self.frame = 0
+
+    # ------------------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget every feature (ids keep increasing)."""
+        self.db.clear()
+
+    def step(self, nav: NavState, image: np.ndarray) -> MapperStep:
+        """Detect corners in ``image`` (H, W) uint8, undistort them, then :meth:`step_measurements`."""
+        image = np.asarray(image)
+        if image.ndim != 2:
+            raise ValueError(f"mapper image must be a 2-D grayscale array, got shape {image.shape}")
+        reason = check_nav(nav)
+        if reason:  # refuse before spending time on detection
+            return self._refused(nav, 0, reason)
+        detector = self.detector
+        if detector is None:
+            from companion.mapper.features import detect_corners  # written separately; imported lazily
+
+            def detector(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                return detect_corners(img, self.cfg, border_px=self.border_px)
+
+        uv_raw, _scores = detector(image)
+        return self.step_measurements(nav, self.camera.undistort(np.asarray(uv_raw, dtype=float).reshape(-1, 2)))
+
+    def step_measurements(self, nav: NavState, uv_ideal: np.ndarray) -> MapperStep:
+        """One mapper step from ideal (undistorted) pixels ``uv_ideal`` (N, 2) in score order."""
+        uv = np.asarray(uv_ideal, dtype=float)
+        if uv.size == 0:
+            uv = uv.reshape(0, 2)
+        if uv.ndim != 2 or uv.shape[1] != 2:
+            raise ValueError(f"measurements must have shape (N, 2), got {uv.shape}")
+        reason = check_nav(nav)
+        if reason:
+            return self._refused(nav, len(uv), reason)
+
+        cfg, db, model = self.cfg, self.db, self.model
+        self.frame += 1
+        P_x = nav.pose_covariance
+        P_x = 0.5 * (P_x + P_x.T)
+        pose = CameraPose.from_body(nav.position_ned_m, nav.R_nb, self.mount)
+
+        valid = np.isfinite(uv).all(axis=1) & self.camera.in_image(uv)
+        meas_index = np.flatnonzero(valid)  # positions in the caller's array
+        z = uv[valid]
+        n_dropped = int(len(uv) - len(z))
+        emitted: list[TerrainPoints] = []
+
+        # Corrupt features (cannot happen through the update, which refuses non-finite results) go.
+        slots = db.active_slots()
+        corrupt = ~(np.isfinite(db.y[slots]).all(axis=1) & np.isfinite(db.P[slots]).all(axis=(1, 2)))
+        db.remove(slots[corrupt])
+        n_removed = int(corrupt.sum())
+        slots = slots[~corrupt]
+
+        # Predict (eqs. 3-4); features behind the camera or outside the image leave the database.
+        uv_pred, h_c = model.measurement_model(db.y[slots], db.R_ref[slots], pose, self.camera)
+        visible = (h_c[:, 0] > 0) & self.camera.in_image(uv_pred)
+        leaving = slots[~visible]
+        emitted.append(self._emitted_points(nav.t_s, leaving[db.converged[leaving]]))
+        db.remove(leaving)
+        n_removed += len(leaving)
+        slots, uv_pred, h_c = slots[visible], uv_pred[visible], h_c[visible]
+
+        # Match (eqs. 10-12).
+        C_x, C_y = model.measurement_jacobian(db.y[slots], db.R_ref[slots], pose, self.camera, h_c)
+        S = innovation_covariance(C_x, C_y, P_x, db.P[slots], self.R_img)
+        Z = mahalanobis_distances(z, uv_pred, S)
+        point_idx, match_idx, ambiguous = gate_and_match(Z, cfg.gate_chi2)
+
+        # Update (eqs. 6-9), all matched features at once.
+        upd = slots[point_idx]
+        y_new, P_new, ok = ekf_update(
+            db.y[upd], db.P[upd], z[match_idx] - uv_pred[point_idx], C_x[point_idx], C_y[point_idx], P_x, self.R_img
+        )
+        db.y[upd] = model.normalise_state(y_new)
+        db.P[upd] = P_new
+        updated = upd[ok]
+        db.updates[updated] += 1
+
+        # Confidence index: +1 matched, -1 visible but not matched (or refused).
+        unmatched = np.setdiff1d(slots, updated, assume_unique=True)
+        db.adjust_confidence(updated, unmatched, cfg.confidence_max)
+
+        # Convergence: emit a feature the first time its relative depth sigma falls below the limit.
+        rel = model.relative_depth_sigma(db.y[updated], db.P[updated], db.R_ref[updated], db.origin[updated])
+        newly = (~db.converged[updated]) & (db.updates[updated] >= cfg.converge_min_updates) & (
+            rel < cfg.converged_rel_depth_sigma
+        )
+        db.converged[updated[newly]] = True
+        emitted.append(self._emitted_points(nav.t_s, updated[newly]))
+
+        # Initialise unmatched, unambiguous measurements (eqs. 13-17) in score order.
+        n_matched = len(updated)
+        init_index = max(0.0, cfg.init_index_max * (1.0 - n_matched / db.capacity))
+        used = np.zeros(len(z), dtype=bool)
+        used[match_idx] = True
+        candidates = np.flatnonzero(~used & ~ambiguous)
+        free = db.free_slots()
+        replaceable = np.setdiff1d(slots, updated, assume_unique=True)
+        replaceable = replaceable[db.confidence[replaceable] < init_index]
+        replaceable = replaceable[np.lexsort((db.born_frame[replaceable], db.confidence[replaceable]))]
+        n_new = min(len(candidates), len(free) + len(replaceable))
+        targets = np.concatenate([free, replaceable])[:n_new].astype(np.intp)
+        replaced = targets[len(free):]
+        emitted.append(self._emitted_points(nav.t_s, replaced[db.converged[replaced]]))
+        db.remove(replaced)
+        n_removed += len(replaced)
+
+        new_ids = _empty_ids()
+        n_fallback = 0
+        chosen = candidates[:n_new]
+        if n_new:
+            h, _ = camera_ray_from_pixel(z[chosen], self.camera)
+            rays = (h / np.linalg.norm(h, axis=1, keepdims=True)) @ pose.R_nc.T
+            ranges, n_fallback = prior_ranges(
+                self.depth_prior, pose.p_c, rays, self.default_ground_alt_m, cfg.prior_min_range_m, cfg.prior_max_range_m
+            )
+            y0, P0, R_ref0 = model.initialise_features(
+                z[chosen], ranges, pose, self.camera, self.R_img, self.prior_sigma, P_x
+            )
+            new_ids = db.insert(targets, y0, P0, R_ref0, pose.p_c, int(round(init_index)), self.frame)
+
+        n_update_rejected = int((~ok).sum())
+        return MapperStep(
+            points=_concatenate(nav.t_s, emitted),
+            n_measurements=len(uv),
+            n_matched=n_matched,
+            n_initialised=n_new,
+            n_removed=n_removed,
+            n_active=db.n_active,
+            n_rejected=n_dropped + n_update_rejected,
+            n_dropped=n_dropped,
+            n_update_rejected=n_update_rejected,
+            n_ambiguous=int(ambiguous.sum()),
+            n_prior_fallback=n_fallback,
+            init_index=init_index,
+            matched_ids=db.ids[updated].copy(),
+            matched_measurements=meas_index[match_idx[ok]].astype(np.int64),
+            initialised_ids=new_ids,
+            initialised_measurements=meas_index[chosen].astype(np.int64),
+        )
+
+    # ------------------------------------------------------------------------------------------
+    def _points(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Position (K, 3) and its covariance ``J P_y J^T`` (K, 3, 3) of the features in ``slots``."""
+        X, J = self.model.point_from_state(self.db.y[slots], self.db.R_ref[slots])
+        cov = J @ self.db.P[slots] @ np.swapaxes(J, 1, 2)
+        return X, 0.5 * (cov + np.swapaxes(cov, 1, 2))
+
+    def _emitted_points(self, t_s: float, slots: np.ndarray) -> TerrainPoints:
+        if len(slots) == 0:
+            return TerrainPoints.empty(t_s)
+        X, cov = self._points(slots)
+        finite = np.isfinite(X).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
+        return TerrainPoints(t_s, X[finite], cov[finite], self.db.ids[slots][finite].copy())
+
+    def _refused(self, nav: NavState, n_measurements: int, reason: str) -> MapperStep:
+        t_s = float(nav.t_s) if np.isfinite(nav.t_s) else 0.0
+        return MapperStep(
+            points=TerrainPoints.empty(t_s),
+            n_measurements=n_measurements,
+            n_matched=0,
+            n_initialised=0,
+            n_removed=0,
+            n_active=self.db.n_active,
+            n_rejected=n_measurements,
+            rejected_reason=reason,
+        )
+
+    def features(self) -> FeatureSnapshot:
+        """Every stored feature with its position estimate and covariance."""
+        slots = self.db.active_slots()
+        X, cov = self._points(slots)
+        db = self.db
+        rel = self.model.relative_depth_sigma(db.y[slots], db.P[slots], db.R_ref[slots], db.origin[slots])
+        return FeatureSnapshot(
+            ids=db.ids[slots].copy(),
+            positions_ned_m=X,
+            covariances=cov,
+            relative_depth_sigma=rel,
+            converged=db.converged[slots].copy(),
+            confidence=db.confidence[slots].copy(),
+            updates=db.updates[slots].copy(),
+            states=db.y[slots].copy(),
+        )

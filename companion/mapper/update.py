@@ -1,0 +1,56 @@
+"""Independent per-feature EKF update, batched over the matched features (seed 000, eqs. 6-9).
+
+Each feature ``j`` is updated on its own with ``P_j = blockdiag(P_x, P_yj)`` (eq. 6). Only the
+feature is corrected (the vehicle state belongs to the autopilot's filter), so the vehicle part of
+the Jacobian enters the innovation covariance only: ``K = P_y C_y^T S^-1`` (eq. 7; the seed's
+``P_y C^T`` can only mean the feature block ``C_y``, for the dimensions to agree). For the feature
+the navigation error acts as extra measurement noise ``R_eff = C_x P_x C_x^T + R_img``, and the
+covariance is updated in Joseph form (equal to eq. 9 for this gain, but symmetric positive
+semi-definite by construction)::
+
+    P+ = (I - K C_y) P (I - K C_y)^T + K R_eff K^T
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.mapper.matching import inverse_2x2
+
+
+def ekf_update(
+    y: np.ndarray,
+    P_y: np.ndarray,
+    innovation: np.ndarray,
+    C_x: np.ndarray,
+    C_y: np.ndarray,
+    P_x: np.ndarray,
+    R_img: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eqs. 7-9 (Joseph form) for N features at once.
+
+    y (N, D), P_y (N, D, D), innovation ``z - g`` (N, 2), C_x (N, 2, 6), C_y (N, 2, D), P_x (6, 6),
+    R_img (2, 2) -> updated y (N, D), P_y (N, D, D) and ``ok`` (N,). A feature whose ``S`` is not
+    positive definite, or whose result is not finite, keeps its prior state (``ok = False``).
+    """
+    y = np.asarray(y, dtype=float)
+    P_y = np.asarray(P_y, dtype=float)
+    n, dim = y.shape
+    if n == 0:
+        return y.copy(), P_y.copy(), np.zeros(0, dtype=bool)
+    C_yT = np.swapaxes(C_y, 1, 2)
+    R_eff = C_x @ P_x @ np.swapaxes(C_x, 1, 2) + R_img  # (N, 2, 2)
+    S = C_y @ P_y @ C_yT + R_eff
+    S_inv, ok = inverse_2x2(0.5 * (S + np.swapaxes(S, 1, 2)))
+
+    K = P_y @ C_yT @ S_inv  # (N, D, 2), eq. 7
+    y_new = y + np.einsum("nij,nj->ni", K, innovation)  # eq. 8
+    I_KC = np.eye(dim) - K @ C_y
+    P_new = I_KC @ P_y @ np.swapaxes(I_KC, 1, 2) + K @ R_eff @ np.swapaxes(K, 1, 2)  # eq. 9, Joseph
+    P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
+
+    diag = np.diagonal(P_new, axis1=1, axis2=2)
+    ok &= np.isfinite(y_new).all(axis=1) & np.isfinite(P_new).all(axis=(1, 2)) & (diag >= 0).all(axis=1)
+    y_new[~ok] = y[~ok]
+    P_new[~ok] = P_y[~ok]
+    return y_new, P_new, ok

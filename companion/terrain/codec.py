@@ -1,0 +1,96 @@
+"""Versioned little-endian binary encoding of one terrain tile (docs/terrain.md, "Tile format").
+
+The same bytes are the Zenoh payload of a tile and the record of a tile in a snapshot, so a
+C or JavaScript subscriber needs nothing but the layout below::
+
+    offset size type     field
+    0      4    bytes    magic b"CTTL"
+    4      2    uint16   format version (1)
+    6      2    uint16   layer mask: bit0 height f32, bit1 variance f32, bit2 count u32,
+                         bit3 disagreement f32 (snapshots only); bits 0-2 always set
+    8      4    int32    tx
+    12     4    int32    ty
+    16     8    float64  cell size (m)
+    24     2    uint16   T, tile edge in cells
+    26     2    uint16   reserved, 0
+    28     4    uint32   CRC-32 (zlib/IEEE) of the payload
+    32     ...  payload: the layers in mask-bit order, each T*T little-endian values,
+                row-major [i north][j east]
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+
+import numpy as np
+
+from companion.terrain.tile import Tile
+
+MAGIC = b"CTTL"
+VERSION = 1
+HEADER = struct.Struct("<4sHHiidHHI")  # 32 bytes
+LAYER_HEIGHT, LAYER_VARIANCE, LAYER_COUNT, LAYER_DISAGREEMENT = 1, 2, 4, 8
+# Layer bit -> (Tile attribute, little-endian dtype, native dtype), in payload order.
+LAYERS = (
+    (LAYER_HEIGHT, "height", "<f4", np.float32),
+    (LAYER_VARIANCE, "variance", "<f4", np.float32),
+    (LAYER_COUNT, "count", "<u4", np.uint32),
+    (LAYER_DISAGREEMENT, "disagreement", "<f4", np.float32),
+)
+REQUIRED = LAYER_HEIGHT | LAYER_VARIANCE | LAYER_COUNT
+KNOWN = REQUIRED | LAYER_DISAGREEMENT
+
+
+def encoded_size(tile_cells: int, mask: int = REQUIRED) -> int:
+    """Bytes of an encoded tile with ``tile_cells`` cells a side and the given layer mask."""
+    return HEADER.size + 4 * tile_cells * tile_cells * bin(mask).count("1")
+
+
+def encode_tile(tile: Tile, *, with_disagreement: bool = False) -> bytes:
+    """Encode ``tile``; the disagreement layer is written only when asked for (snapshots)."""
+    t = tile.tile_cells
+    if t > 0xFFFF:
+        raise ValueError(f"tile of {t} cells a side cannot be encoded (max 65535)")
+    mask = REQUIRED | (LAYER_DISAGREEMENT if with_disagreement and tile.disagreement is not None else 0)
+    if with_disagreement and tile.disagreement is None:
+        raise ValueError("tile has no disagreement layer to encode")
+    payload = b"".join(
+        np.ascontiguousarray(getattr(tile, name), dtype=le).tobytes()
+        for bit, name, le, _ in LAYERS
+        if mask & bit
+    )
+    header = HEADER.pack(MAGIC, VERSION, mask, tile.tx, tile.ty, float(tile.cell_size_m), t, 0, zlib.crc32(payload))
+    return header + payload
+
+
+def decode_tile(data: bytes | bytearray | memoryview) -> Tile:
+    """Decode bytes made by :func:`encode_tile`; ValueError names what is wrong."""
+    data = bytes(data)
+    if len(data) < HEADER.size:
+        raise ValueError(f"tile payload too short: {len(data)} bytes, header alone is {HEADER.size}")
+    magic, version, mask, tx, ty, cell, t, _reserved, crc = HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise ValueError(f"not a terrain tile: magic {magic!r}, expected {MAGIC!r}")
+    if version != VERSION:
+        raise ValueError(f"unsupported terrain tile version {version} (this build reads {VERSION})")
+    if mask & ~KNOWN or (mask & REQUIRED) != REQUIRED:
+        raise ValueError(f"terrain tile has unknown or missing layers: mask 0x{mask:04x}")
+    if t < 1:
+        raise ValueError("terrain tile has zero cells")
+    if not (np.isfinite(cell) and cell > 0):
+        raise ValueError(f"terrain tile has invalid cell size {cell}")
+    expected = encoded_size(t, mask)
+    if len(data) != expected:
+        raise ValueError(f"terrain tile length {len(data)} bytes, expected {expected} for T={t}, mask 0x{mask:x}")
+    payload = memoryview(data)[HEADER.size :]
+    if zlib.crc32(payload) != crc:
+        raise ValueError("terrain tile CRC mismatch: payload corrupted")
+    layers = {}
+    offset = 0
+    n = t * t
+    for bit, name, le, native in LAYERS:
+        if mask & bit:
+            layers[name] = np.frombuffer(payload, dtype=le, count=n, offset=offset).astype(native).reshape(t, t)
+            offset += 4 * n
+    return Tile(tx, ty, cell_size_m=cell, **layers)

@@ -1,0 +1,512 @@
+"""The terrain evidence grid: tiles created on demand in the local NED frame (seed 000, II.E).
+
+Storage: one pool of tile layers ``(capacity, T, T)`` (height f32, variance f32, count u32,
+disagreement f32 = 16 bytes a cell) and a sorted array of packed tile keys, so every batched
+operation is one ``searchsorted`` plus fancy indexing, and memory follows the tiles that exist
+(the area observed), never a bounding box. Fusion rules: :mod:`companion.terrain.fusion`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from companion.config import TerrainConfig
+from companion.messages import TerrainPoints
+from companion.terrain import fusion
+from companion.terrain.tile import Tile
+
+_KEY_SHIFT = np.int64(1 << 32)
+_KEY_BIAS = np.int64(1 << 31)
+_COUNT_MAX = np.iinfo(np.uint32).max
+
+
+def pack_key(tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
+    """Tile indices -> one int64 per tile (tx in the high 32 bits, ty biased in the low 32)."""
+    return np.asarray(tx, dtype=np.int64) * _KEY_SHIFT + (np.asarray(ty, dtype=np.int64) + _KEY_BIAS)
+
+
+def unpack_key(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    key = np.asarray(key, dtype=np.int64)
+    tx = np.floor_divide(key, _KEY_SHIFT)
+    return tx, key - tx * _KEY_SHIFT - _KEY_BIAS
+
+
+@dataclass(frozen=True, slots=True)
+class InsertStats:
+    """Outcome of one :meth:`TerrainGrid.insert` (counts of points unless named cells)."""
+
+    inserted: int = 0
+    rejected_invalid: int = 0
+    rejected_outlier: int = 0
+    cells_touched: int = 0
+    cells_reset: int = 0
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Corridor:
+    """Cells whose centre lies within ``half_width`` of a horizontal segment, sorted along track.
+
+    Every array is (K,): north_m, east_m (cell centre), along_m (projection on the direction from
+    the origin; negative for cells beside or behind the origin), cross_m (distance to the
+    segment's line), height_m (NaN unknown), variance (inf unknown), count.
+    """
+
+    north_m: np.ndarray
+    east_m: np.ndarray
+    along_m: np.ndarray
+    cross_m: np.ndarray
+    height_m: np.ndarray
+    variance: np.ndarray
+    count: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.along_m)
+
+    @property
+    def known(self) -> np.ndarray:
+        return self.count > 0
+
+    def most_restrictive(self) -> int | None:
+        """Index of the highest known cell (the nearest of equals), or None if none is known."""
+        if not self.known.any():
+            return None
+        return int(np.nanargmax(self.height_m))
+
+
+class TerrainGrid:
+    """Evidence grid of terrain altitudes (m, up) over the local NED frame, in tiles on demand."""
+
+    def __init__(
+        self,
+        cell_size_m: float = 1.0,
+        tile_cells: int = 32,
+        *,
+        spread_sigma: float = 2.0,
+        max_spread_cells: int = 3,
+        min_height_sigma_m: float = 0.05,
+        gate_sigma: float = 3.0,
+        gate_min_count: int = 2,
+        reset_evidence: float = 3.0,
+        process_noise_m2: float = 1e-4,
+        max_abs_coordinate_m: float = 1e6,
+    ) -> None:
+        if not (np.isfinite(cell_size_m) and cell_size_m > 0):
+            raise ValueError(f"cell_size_m must be positive and finite, got {cell_size_m}")
+        if not (1 <= int(tile_cells) <= 0xFFFF):
+            raise ValueError(f"tile_cells must be in 1..65535, got {tile_cells}")
+        if max_abs_coordinate_m / (cell_size_m * tile_cells) >= 2**30:
+            raise ValueError("max_abs_coordinate_m is too large for the tile key range")
+        self.cell_size_m = float(cell_size_m)
+        self.tile_cells = int(tile_cells)
+        self.spread_sigma = float(spread_sigma)
+        self.max_spread_cells = int(max_spread_cells)
+        self.min_height_sigma_m = float(min_height_sigma_m)
+        self.gate_sigma = float(gate_sigma)
+        self.gate_min_count = int(gate_min_count)
+        self.reset_evidence = float(reset_evidence)
+        self.process_noise_m2 = float(process_noise_m2)
+        self.max_abs_coordinate_m = float(max_abs_coordinate_m)
+        t = self.tile_cells
+        self._cells_per_tile = t * t
+        self._n_tiles = 0
+        self._keys = np.zeros(0, dtype=np.int64)  # sorted packed keys
+        self._key_slots = np.zeros(0, dtype=np.int64)  # pool slot of each sorted key
+        self._slot_key: list[tuple[int, int]] = []
+        self._alloc(0)
+        self._dirty: set[tuple[int, int]] = set()
+        # Conservative bounds on every known height (may be stale-wide after a cell is lowered).
+        self._h_lo = np.inf
+        self._h_hi = -np.inf
+
+    @classmethod
+    def from_config(cls, cfg: TerrainConfig) -> "TerrainGrid":
+        return cls(
+            cfg.cell_size_m,
+            cfg.tile_cells,
+            spread_sigma=cfg.spread_sigma,
+            max_spread_cells=cfg.max_spread_cells,
+            min_height_sigma_m=cfg.min_height_sigma_m,
+            gate_sigma=cfg.gate_sigma,
+            gate_min_count=cfg.gate_min_count,
+            reset_evidence=cfg.reset_evidence,
+            process_noise_m2=cfg.process_noise_m2,
+            max_abs_coordinate_m=cfg.max_abs_coordinate_m,
+        )
+
+    # ---------------------------------------------------------------------------------- storage
+
+    def _alloc(self, capacity: int) -> None:
+        t = self.tile_cells
+        self._h = np.full((capacity, t, t), np.nan, dtype=np.float32)
+        self._v = np.full((capacity, t, t), np.inf, dtype=np.float32)
+        self._n = np.zeros((capacity, t, t), dtype=np.uint32)
+        self._d = np.zeros((capacity, t, t), dtype=np.float32)
+
+    def _grow(self, needed: int) -> None:
+        cap = len(self._h)
+        if needed <= cap:
+            return
+        old = (self._h, self._v, self._n, self._d)
+        self._alloc(max(needed, cap + cap // 2, 16))
+        for new, o in zip((self._h, self._v, self._n, self._d), old):
+            new[: self._n_tiles] = o[: self._n_tiles]
+
+    def _slots_of(self, keys: np.ndarray) -> np.ndarray:
+        """Pool slot of each packed key, -1 where the tile does not exist. keys: (M,) int64."""
+        if self._n_tiles == 0:
+            return np.full(keys.shape, -1, dtype=np.int64)
+        pos = np.minimum(np.searchsorted(self._keys, keys), self._n_tiles - 1)
+        return np.where(self._keys[pos] == keys, self._key_slots[pos], -1)
+
+    def _ensure_tiles(self, keys: np.ndarray) -> np.ndarray:
+        """Pool slots of unique packed ``keys``, creating the missing tiles."""
+        slots = self._slots_of(keys)
+        missing = slots < 0
+        if missing.any():
+            new_keys = keys[missing]
+            first = self._n_tiles
+            self._grow(first + len(new_keys))
+            new_slots = np.arange(first, first + len(new_keys), dtype=np.int64)
+            self._n_tiles += len(new_keys)
+            tx, ty = unpack_key(new_keys)
+            self._slot_key.extend(zip(tx.tolist(), ty.tolist()))
+            keys_all = np.concatenate([self._keys, new_keys])
+            slots_all = np.concatenate([self._key_slots, new_slots])
+            order = np.argsort(keys_all, kind="stable")
+            self._keys, self._key_slots = keys_all[order], slots_all[order]
+            slots[missing] = new_slots
+        return slots
+
+    def _cells(self, ci: np.ndarray, cj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Global cell indices -> (packed tile key, index inside the tile's flattened layers)."""
+        t = self.tile_cells
+        if t & (t - 1) == 0:  # power of two: an arithmetic shift is floor division, also below zero
+            b = t.bit_length() - 1
+            tx, ty = ci >> b, cj >> b
+            return pack_key(tx, ty), ((ci & (t - 1)) << b) | (cj & (t - 1))
+        tx, ty = np.floor_divide(ci, t), np.floor_divide(cj, t)
+        return pack_key(tx, ty), (ci - tx * t) * t + (cj - ty * t)
+
+    def _gather(self, ci: np.ndarray, cj: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(height, variance, count) of cells by global index; NaN / inf / 0 where no tile."""
+        keys, local = self._cells(ci, cj)
+        slots = self._slots_of(keys)
+        have = slots >= 0
+        flat = np.where(have, slots * self._cells_per_tile + local, 0)
+        h = np.where(have, self._h.reshape(-1)[flat] if self._n_tiles else np.nan, np.nan).astype(np.float64)
+        v = np.where(have, self._v.reshape(-1)[flat] if self._n_tiles else np.inf, np.inf).astype(np.float64)
+        n = np.where(have, self._n.reshape(-1)[flat] if self._n_tiles else 0, 0).astype(np.int64)
+        return h, v, n
+
+    # ----------------------------------------------------------------------------------- fusion
+
+    def insert(self, points: TerrainPoints) -> InsertStats:
+        """Fuse a batch of converged points (docs/terrain.md, "Fusion"). Invalid points are counted
+        in ``rejected_invalid``; points the gate refused in every cell they touch in
+        ``rejected_outlier``. A malformed message (wrong shapes) raises ValueError."""
+        pos = np.asarray(points.positions_ned_m, dtype=np.float64)
+        cov = np.asarray(points.covariances, dtype=np.float64)
+        if pos.ndim != 2 or pos.shape[1] != 3:
+            raise ValueError(f"TerrainPoints.positions_ned_m must be (N, 3), got {pos.shape}")
+        if cov.shape != (len(pos), 3, 3):
+            raise ValueError(f"TerrainPoints.covariances must be ({len(pos)}, 3, 3), got {cov.shape}")
+        ok = fusion.valid_points(pos, cov, self.max_abs_coordinate_m)
+        n_invalid = int(len(pos) - np.count_nonzero(ok))
+        if not ok.all():
+            pos, cov = pos[ok], cov[ok]
+        if len(pos) == 0:
+            return InsertStats(rejected_invalid=n_invalid)
+
+        c, t2 = self.cell_size_m, self._cells_per_tile
+        height = -pos[:, 2]
+        var_z = np.maximum(cov[:, 2, 2], self.min_height_sigma_m**2)
+        p, ci, cj, w = fusion.horizontal_spread(
+            pos[:, 0], pos[:, 1], cov[:, :2, :2], c, self.spread_sigma, self.max_spread_cells
+        )
+        hm = height[p]
+        r = fusion.measurement_variance(var_z[p], w)
+        keys, local_in_tile = self._cells(ci, cj)
+        slots = self._slots_of(keys)
+        missing = slots < 0
+        if missing.any():
+            new_keys, where = np.unique(keys[missing], return_inverse=True)
+            slots[missing] = self._ensure_tiles(new_keys)[where]
+        # Compact the tiles of this batch to 0..B-1 without sorting the pairs.
+        in_batch = np.zeros(self._n_tiles, dtype=bool)
+        in_batch[slots] = True
+        batch_slots = np.flatnonzero(in_batch)
+        rank = np.zeros(self._n_tiles, dtype=np.int64)
+        rank[batch_slots] = np.arange(len(batch_slots))
+        batch_tile = rank[slots]
+        pool_flat = slots * t2 + local_in_tile
+        h0 = self._h.reshape(-1)[pool_flat]
+        v0 = self._v.reshape(-1)[pool_flat]
+        n0 = self._n.reshape(-1)[pool_flat]
+        rejected = fusion.gate(hm, r, h0, v0, n0, self.gate_sigma, self.gate_min_count)
+        accepted = ~rejected
+
+        # Number the cells this batch touches 0..K-1 (batch tile * T^2 + cell in tile, compacted),
+        # so every per-cell sum below is a bincount of length K.
+        local = batch_tile * t2 + local_in_tile
+        size = len(batch_slots) * t2
+        seen = np.zeros(size, dtype=bool)
+        seen[local] = True
+        touched = np.flatnonzero(seen)
+        cell_rank = np.zeros(size, dtype=np.int64)
+        cell_rank[touched] = np.arange(len(touched))
+        cell = cell_rank[local]
+        k = len(touched)
+        cell_flat = batch_slots[touched // t2] * t2 + touched % t2
+        a_w = np.bincount(cell, weights=w * accepted, minlength=k)
+        j_w = np.bincount(cell, weights=w * rejected, minlength=k)
+        d1 = fusion.disagreement_update(self._d.reshape(-1)[cell_flat], a_w, j_w)
+        reset = d1 >= self.reset_evidence
+
+        # Information of the accepted pairs; at a reset cell, of the rejected (new) ones instead.
+        use = np.where(reset[cell], rejected, accepted) if reset.any() else accepted
+        inv_r = use / r
+        info = np.bincount(cell, weights=inv_r, minlength=k)
+        info_h = np.bincount(cell, weights=hm * inv_r, minlength=k)
+        n_use = np.bincount(cell, weights=use, minlength=k)
+
+        h_prior = self._h.reshape(-1)[cell_flat].astype(np.float64)
+        v_prior = self._v.reshape(-1)[cell_flat].astype(np.float64)
+        n_prior = self._n.reshape(-1)[cell_flat].astype(np.float64)
+        v_prior[reset] = np.inf
+        n_prior[reset] = 0.0
+        update = n_use > 0
+        h1, v1 = fusion.fuse_information(h_prior[update], v_prior[update], info[update], info_h[update], self.process_noise_m2)
+        upd_flat = cell_flat[update]
+        self._h.reshape(-1)[upd_flat] = h1
+        self._v.reshape(-1)[upd_flat] = v1
+        self._n.reshape(-1)[upd_flat] = np.minimum(n_prior[update] + n_use[update], _COUNT_MAX)
+        self._d.reshape(-1)[cell_flat] = np.where(reset, 0.0, d1)
+        if len(h1):
+            self._h_lo = min(self._h_lo, float(h1.min()))
+            self._h_hi = max(self._h_hi, float(h1.max()))
+
+        # Every tile of the batch holds at least one touched cell.
+        self._dirty.update(self._slot_key[s] for s in batch_slots.tolist())
+        used_points = np.bincount(p, weights=use, minlength=len(pos)) > 0
+        n_used = int(np.count_nonzero(used_points))
+        return InsertStats(
+            inserted=n_used,
+            rejected_invalid=n_invalid,
+            rejected_outlier=int(len(pos) - n_used),
+            cells_touched=int(np.count_nonzero(update)),
+            cells_reset=int(np.count_nonzero(reset)),
+        )
+
+    # ---------------------------------------------------------------------------------- queries
+
+    def cell_index(self, north_m, east_m) -> tuple[np.ndarray, np.ndarray]:
+        """Global cell indices (floor(x / c)) of positions, as int64 arrays."""
+        c = self.cell_size_m
+        return (np.floor(np.asarray(north_m, dtype=np.float64) / c).astype(np.int64),
+                np.floor(np.asarray(east_m, dtype=np.float64) / c).astype(np.int64))
+
+    def height_at(self, north_m, east_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Height (m, NaN unknown), variance (m^2, inf unknown) and count of the cells holding the
+        given positions; inputs broadcast, outputs have their shape. Non-finite positions: unknown."""
+        n, e = np.broadcast_arrays(np.asarray(north_m, dtype=np.float64), np.asarray(east_m, dtype=np.float64))
+        finite = np.isfinite(n) & np.isfinite(e) & (np.abs(n) <= self.max_abs_coordinate_m) & (np.abs(e) <= self.max_abs_coordinate_m)
+        ci, cj = self.cell_index(np.where(finite, n, 0.0), np.where(finite, e, 0.0))
+        h, v, cnt = self._gather(ci.ravel(), cj.ravel())
+        f = finite.ravel()
+        h[~f], v[~f], cnt[~f] = np.nan, np.inf, 0
+        return h.reshape(n.shape), v.reshape(n.shape), cnt.reshape(n.shape)
+
+    def corridor(self, origin_ne, direction_ne, length_m: float, half_width_m: float) -> Corridor:
+        """Cells whose centre is within ``half_width_m`` of the segment from ``origin_ne`` along the
+        unit ``direction_ne`` for ``length_m`` (a disc when the length is 0), sorted along track.
+
+        The candidates are generated row by row along the segment's major axis: in a row the cells
+        within ``w`` of the line span at most ``2 w / |d_major|`` across it, so the work is
+        proportional to the corridor's area, not to its bounding box.
+        """
+        o = np.asarray(origin_ne, dtype=np.float64).reshape(2)
+        d = np.asarray(direction_ne, dtype=np.float64).reshape(2)
+        length, w, c = float(length_m), float(half_width_m), self.cell_size_m
+        if not (np.isfinite(o).all() and np.isfinite(d).all() and np.isfinite(length) and np.isfinite(w)):
+            raise ValueError("corridor: origin, direction, length and half width must be finite")
+        if length < 0 or w < 0:
+            raise ValueError(f"corridor: length ({length}) and half width ({w}) must be >= 0")
+        norm = float(np.hypot(*d))
+        if norm == 0.0:
+            if length > 0:
+                raise ValueError("corridor: direction is zero")
+            d = np.array([1.0, 0.0])
+        else:
+            d = d / norm
+        major = 0 if abs(d[0]) >= abs(d[1]) else 1
+        minor = 1 - major
+        end = o + length * d
+        lo_m, hi_m = min(o[major], end[major]), max(o[major], end[major])
+        rows = np.arange(np.floor((lo_m - w) / c), np.floor((hi_m + w) / c) + 1, dtype=np.int64)
+        x = (rows + 0.5) * c
+        slope = d[minor] / d[major]
+        y_line = o[minor] + (np.clip(x, lo_m, hi_m) - o[major]) * slope
+        reach = w / abs(d[major])
+        j_lo = np.ceil((y_line - reach) / c - 0.5).astype(np.int64)
+        j_hi = np.floor((y_line + reach) / c - 0.5).astype(np.int64)
+        k = int(max(0, (j_hi - j_lo).max(initial=0))) + 1
+        jj = j_lo[:, None] + np.arange(k)[None, :]
+        ok = jj <= j_hi[:, None]
+        ii = np.broadcast_to(rows[:, None], jj.shape)[ok]
+        jj = jj[ok]
+        cells = [None, None]
+        cells[major], cells[minor] = ii, jj
+        ci, cj = cells
+        cn, ce = (ci + 0.5) * c, (cj + 0.5) * c
+        rn, re = cn - o[0], ce - o[1]
+        along = rn * d[0] + re * d[1]
+        s = np.clip(along, 0.0, length)
+        inside = (rn - s * d[0]) ** 2 + (re - s * d[1]) ** 2 <= w * w
+        order = np.argsort(along[inside], kind="stable")
+        ci, cj, cn, ce, along = ci[inside][order], cj[inside][order], cn[inside][order], ce[inside][order], along[inside][order]
+        cross = np.abs((cn - o[0]) * d[1] - (ce - o[1]) * d[0])
+        h, v, cnt = self._gather(ci, cj)
+        return Corridor(cn, ce, along, cross, h, v, cnt)
+
+    def ray_range(self, origin_ned: np.ndarray, rays_ned: np.ndarray, max_range_m: float) -> np.ndarray:
+        """(N,) range (m) along each unit ray from ``origin_ned`` (3,) to the first known terrain, NaN
+        where none within ``max_range_m``: the mapper's depth prior (seed 000, eq. 16).
+
+        The ray is marched at half a cell only through the altitude band that holds known terrain
+        (a conservative [min, max] of every known height), and the crossing is interpolated
+        linearly between the last sample above the terrain and the first at or below it.
+        """
+        o = np.asarray(origin_ned, dtype=np.float64).reshape(3)
+        rays = np.asarray(rays_ned, dtype=np.float64).reshape(-1, 3)
+        out = np.full(len(rays), np.nan)
+        if self._n_tiles == 0 or not np.isfinite(self._h_hi) or len(rays) == 0 or not np.isfinite(o).all():
+            return out
+        alt0 = -o[2]
+        rz = rays[:, 2]  # altitude along the ray: alt(t) = alt0 - t * rz
+        good = np.isfinite(rays).all(axis=1)
+        down, up = rz > 0, rz < 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_hi = (alt0 - self._h_hi) / rz  # where the ray crosses the highest known height
+            t_lo = (alt0 - self._h_lo) / rz  # ... and the lowest
+        t_in = np.where(down, np.maximum(t_hi, 0.0), np.where(alt0 <= self._h_hi, 0.0, np.inf))
+        t_out = np.minimum(np.where(down, t_lo, np.where(up, t_hi, np.inf)), max_range_m)
+        live = good & (t_in <= t_out)
+        if not live.any():
+            return out
+        idx = np.flatnonzero(live)
+        step = 0.5 * self.cell_size_m
+        # Start half a step early so a crossing right at t_in has a sample above it.
+        start = np.maximum(t_in[idx] - step, 0.0)
+        n_steps = int(np.ceil((t_out[idx] - start).max() / step)) + 2
+        best = np.full(len(idx), np.nan)
+        chunk = max(1, 200_000 // n_steps)
+        for a in range(0, len(idx), chunk):
+            sl = slice(a, a + chunk)
+            ray = rays[idx[sl]]
+            t = start[sl, None] + step * np.arange(n_steps)[None, :]
+            t = np.minimum(t, t_out[idx[sl], None] + step)
+            pts = o[None, None, :] + t[..., None] * ray[:, None, :]
+            h, _, _ = self.height_at(pts[..., 0], pts[..., 1])
+            gap = -pts[..., 2] - h  # > 0 above terrain, <= 0 at or below, NaN unknown
+            hit = gap <= 0
+            first = np.argmax(hit, axis=1)
+            any_hit = hit[np.arange(len(first)), first]
+            rows = np.flatnonzero(any_hit)
+            f = first[rows]
+            t_hit = t[rows, f]
+            prev = np.maximum(f - 1, 0)
+            g0, g1 = gap[rows, prev], gap[rows, f]
+            interp = (f > 0) & np.isfinite(g0) & (g0 > 0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                frac = np.where(interp, g0 / (g0 - g1), 1.0)
+            t0 = t[rows, prev]
+            t_hit = np.where(interp, t0 + frac * (t_hit - t0), t_hit)
+            res = np.full(len(first), np.nan)
+            res[rows] = np.where(t_hit <= max_range_m, t_hit, np.nan)
+            best[sl] = res
+        out[idx] = best
+        return out
+
+    # ------------------------------------------------------------------------------ tiles & I/O
+
+    def pop_dirty(self) -> list[tuple[int, int]]:
+        """Keys of the tiles changed since the last call, sorted (for publishing)."""
+        keys = sorted(self._dirty)
+        self._dirty.clear()
+        return keys
+
+    def keys(self) -> list[tuple[int, int]]:
+        return sorted(self._slot_key)
+
+    def __len__(self) -> int:
+        return self._n_tiles
+
+    def __contains__(self, key) -> bool:
+        return bool(self._slots_of(pack_key(np.array([key[0]]), np.array([key[1]])))[0] >= 0)
+
+    def tile(self, key: tuple[int, int], *, with_disagreement: bool = False) -> Tile:
+        """A copy of one tile's layers; KeyError if the tile does not exist."""
+        tx, ty = int(key[0]), int(key[1])
+        slot = int(self._slots_of(pack_key(np.array([tx]), np.array([ty])))[0])
+        if slot < 0:
+            raise KeyError(f"no terrain tile {key}")
+        return Tile(
+            tx, ty, self._h[slot].copy(), self._v[slot].copy(), self._n[slot].copy(), self.cell_size_m,
+            self._d[slot].copy() if with_disagreement else None,
+        )
+
+    def tiles(self, *, with_disagreement: bool = False) -> Iterator[Tile]:
+        for key in self.keys():
+            yield self.tile(key, with_disagreement=with_disagreement)
+
+    def put_tile(self, tile: Tile) -> None:
+        """Replace (or create) a tile from its layers, e.g. one decoded from the wire or a snapshot."""
+        if tile.tile_cells != self.tile_cells or tile.cell_size_m != self.cell_size_m:
+            raise ValueError(
+                f"tile {tile.key} has T={tile.tile_cells}, cell {tile.cell_size_m} m; "
+                f"this grid has T={self.tile_cells}, cell {self.cell_size_m} m"
+            )
+        slot = int(self._ensure_tiles(pack_key(np.array([tile.tx]), np.array([tile.ty])))[0])
+        self._h[slot], self._v[slot], self._n[slot] = tile.height, tile.variance, tile.count
+        self._d[slot] = 0.0 if tile.disagreement is None else tile.disagreement
+        known = tile.count > 0
+        if known.any():
+            hk = tile.height[known]
+            self._h_lo = min(self._h_lo, float(np.nanmin(hk)))
+            self._h_hi = max(self._h_hi, float(np.nanmax(hk)))
+        self._dirty.add(tile.key)
+
+    def memory_bytes(self) -> int:
+        """Bytes held by the map: the tile pool as allocated plus the key index."""
+        pool = self._h.nbytes + self._v.nbytes + self._n.nbytes + self._d.nbytes
+        return int(pool + self._keys.nbytes + self._key_slots.nbytes + 64 * len(self._slot_key))
+
+    def observed_area_m2(self) -> float:
+        """Area (m^2) of the cells holding evidence."""
+        return float(np.count_nonzero(self._n[: self._n_tiles])) * self.cell_size_m**2
+
+    def save_snapshot(self, path: str | Path) -> None:
+        """Write the whole map atomically (docs/terrain.md, "Snapshot format")."""
+        from companion.terrain.persistence import write_snapshot
+
+        write_snapshot(self, path)
+
+    @classmethod
+    def load_snapshot(cls, path: str | Path, cfg: TerrainConfig | None = None) -> "TerrainGrid":
+        """Read a snapshot written by :meth:`save_snapshot`; fusion parameters come from ``cfg``.
+        A truncated, corrupted or incompatible file raises SnapshotError and builds nothing."""
+        from companion.terrain.persistence import read_snapshot
+
+        return read_snapshot(path, cfg)
+
+
+def grids_equal(a: TerrainGrid, b: TerrainGrid) -> bool:
+    """Same geometry, same tiles, bit-exact layers (including the fusion state)."""
+    if (a.cell_size_m, a.tile_cells) != (b.cell_size_m, b.tile_cells) or a.keys() != b.keys():
+        return False
+    return all(a.tile(k, with_disagreement=True).same_as(b.tile(k, with_disagreement=True)) for k in a.keys())
+

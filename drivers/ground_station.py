@@ -1,0 +1,495 @@
+"""``companion ground``: a ground-station subscriber that rebuilds the vehicle's terrain map.
+
+It subscribes to the vehicle's tiles, status and avoidance state (docs/zenoh.md), asks for the
+whole map when it starts and whenever the vehicle's liveliness token (re)appears, keeps the
+tiles in a :class:`GroundMap`, rewrites a PNG of the map every few seconds (atomically) and
+prints a one-line summary.
+
+Ordering: live tiles and query replies both carry the Zenoh timestamp the vehicle stamped the
+tile with, so a reply older than a live tile already applied is dropped (counted as stale)
+whatever order they arrive in.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import queue
+import signal
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, TextIO
+
+import cv2
+import numpy as np
+
+from companion.config import ConfigError, ZenohConfig, load_config
+from drivers.zenoh_bus import AVOIDANCE_SCHEMA, STATUS_SCHEMA, BusError, BusKeys, zenoh_config
+
+UNKNOWN_BGR = (128, 128, 128)
+COLORMAP = cv2.COLORMAP_TURBO
+MAX_MOSAIC_CELLS = 4096  # per side; larger maps are decimated for display
+
+
+def _decode_tile(payload: bytes):
+    # Imported on use: the ground station's wiring (and its tests) must not depend on the
+    # terrain package being importable at module load.
+    from companion.terrain.codec import decode_tile
+
+    return decode_tile(payload)
+
+
+def _has_schema(doc: Any, schema: str) -> bool:
+    """True when ``doc`` is a JSON object of exactly ``schema`` (a new major version is a new name)."""
+    return isinstance(doc, dict) and doc.get("schema") == schema
+
+
+@dataclass(frozen=True, slots=True)
+class Mosaic:
+    """The known map on one regular grid.
+
+    height: (H, W) float32 altitude (m, up), NaN unknown; row i is north, column j east, row 0 is
+        the southern edge (the tile layer convention, docs/terrain.md).
+    north0_m, east0_m: south-west corner of cell [0, 0]; cell_size_m: edge of one (displayed) cell.
+    """
+
+    height: np.ndarray
+    north0_m: float
+    east0_m: float
+    cell_size_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class MapLayout:
+    """Where the map sits in a rendered image (north up, east right)."""
+
+    x0: int
+    y0: int
+    cell_px: int
+    rows: int
+    cols: int
+    north0_m: float
+    east0_m: float
+    cell_size_m: float
+    height_lo_m: float
+    height_hi_m: float
+
+    def pixel(self, north_m: float, east_m: float) -> tuple[int, int]:
+        """(x, y) image pixel at the centre of the displayed cell containing (north, east)."""
+        i = int(math.floor((north_m - self.north0_m) / self.cell_size_m))
+        j = int(math.floor((east_m - self.east0_m) / self.cell_size_m))
+        if not (0 <= i < self.rows and 0 <= j < self.cols):
+            raise ValueError(f"({north_m}, {east_m}) m is outside the rendered map")
+        row = self.rows - 1 - i  # north up
+        return self.x0 + j * self.cell_px + self.cell_px // 2, self.y0 + row * self.cell_px + self.cell_px // 2
+
+
+class GroundMap:
+    """Tiles, status and avoidance state of one vehicle, rebuilt from Zenoh samples.
+
+    Single-threaded: feed it from one thread (the ground station drains a queue into it).
+    """
+
+    def __init__(self, vehicle: str) -> None:
+        self.keys = BusKeys(vehicle)
+        self.tiles: dict[tuple[int, int], Any] = {}  # (tx, ty) -> companion.terrain.tile.Tile
+        self._stamps: dict[tuple[int, int], int | None] = {}
+        self.status: dict[str, Any] | None = None
+        self.avoidance: dict[str, Any] | None = None
+        self.status_rx_monotonic: float | None = None
+        self.counts = dict.fromkeys(
+            ("tiles_rx", "status_rx", "avoidance_rx", "bad_tiles", "stale_tiles", "bad_json", "ignored", "query_errors"), 0
+        )
+        self.last_error = ""
+
+    # ---- applying samples --------------------------------------------------------------------
+
+    def apply(self, key: str, payload: bytes, stamp: int | None = None) -> bool:
+        """Route one sample by key; False (and counted) when it was rejected or not ours."""
+        if key == self.keys.status or key == self.keys.avoidance:
+            return self.apply_json(key, payload)
+        if self.keys.parse_tile(key) is not None:
+            return self.apply_tile(key, payload, stamp)
+        self.counts["ignored"] += 1
+        return False
+
+    def reject(self, counter: str, why: str) -> bool:
+        """Count a rejected input under ``counter`` and remember why (for the summary)."""
+        self.counts[counter] += 1
+        self.last_error = why
+        return False
+
+    def apply_tile(self, key: str, payload: bytes, stamp: int | None = None) -> bool:
+        """Decode and store a tile unless it is malformed, misplaced, inconsistent or stale."""
+        index = self.keys.parse_tile(key)
+        if index is None:
+            return self.reject("bad_tiles", f"not a tile key: {key!r}")
+        try:
+            tile = _decode_tile(payload)
+        except ValueError as exc:
+            return self.reject("bad_tiles", f"{key}: {exc}")
+        if (tile.tx, tile.ty) != index:
+            return self.reject("bad_tiles", f"{key}: payload is tile ({tile.tx}, {tile.ty})")
+        if self.tiles:
+            ref = next(iter(self.tiles.values()))
+            if tile.tile_cells != ref.tile_cells or tile.cell_size_m != ref.cell_size_m:
+                return self.reject(
+                    "bad_tiles",
+                    f"{key}: {tile.tile_cells} cells of {tile.cell_size_m} m, the map has "
+                    f"{ref.tile_cells} of {ref.cell_size_m} m",
+                )
+        old = self._stamps.get(index)
+        if stamp is not None and old is not None and stamp < old:
+            self.counts["stale_tiles"] += 1
+            return False
+        self.tiles[index] = tile
+        self._stamps[index] = stamp
+        self.counts["tiles_rx"] += 1
+        return True
+
+    def apply_json(self, key: str, payload: bytes) -> bool:
+        """Status or avoidance JSON (``companion.status/1``, ``companion.avoidance/1``)."""
+        try:
+            doc = json.loads(bytes(payload).decode("utf-8"))
+        except (UnicodeDecodeError, ValueError) as exc:
+            return self.reject("bad_json", f"{key}: not UTF-8 JSON: {exc}")
+        if key == self.keys.status:
+            if not _has_schema(doc, STATUS_SCHEMA):
+                return self.reject("bad_json", f"{key}: schema {doc.get('schema') if isinstance(doc, dict) else None!r}")
+            self.status = doc
+            self.status_rx_monotonic = time.monotonic()
+            self.counts["status_rx"] += 1
+            return True
+        if not _has_schema(doc, AVOIDANCE_SCHEMA):
+            return self.reject("bad_json", f"{key}: schema {doc.get('schema') if isinstance(doc, dict) else None!r}")
+        self.avoidance = doc
+        self.counts["avoidance_rx"] += 1
+        return True
+
+    # ---- the map on one grid -----------------------------------------------------------------
+
+    def cells_known(self) -> int:
+        return int(sum(int(np.count_nonzero(t.count > 0)) for t in self.tiles.values()))
+
+    def mosaic(self) -> Mosaic | None:
+        """All tiles on one grid (decimated when wider than :data:`MAX_MOSAIC_CELLS`); None if empty."""
+        if not self.tiles:
+            return None
+        ref = next(iter(self.tiles.values()))
+        t, c = ref.tile_cells, ref.cell_size_m
+        txs = [k[0] for k in self.tiles]
+        tys = [k[1] for k in self.tiles]
+        i_min, j_min = min(txs) * t, min(tys) * t  # global cell index of the south-west corner
+        rows, cols = (max(txs) + 1) * t - i_min, (max(tys) + 1) * t - j_min
+        step = max(1, math.ceil(max(rows, cols) / MAX_MOSAIC_CELLS))
+        out = np.full((math.ceil(rows / step), math.ceil(cols / step)), np.nan, dtype=np.float32)
+        for (tx, ty), tile in self.tiles.items():
+            gi, gj = tx * t - i_min, ty * t - j_min  # tile origin in mosaic cells
+            si, sj = (-gi) % step, (-gj) % step  # first tile cell on the decimated lattice
+            h = np.where(tile.count > 0, tile.height, np.nan)[si::step, sj::step]
+            oi, oj = (gi + si) // step, (gj + sj) // step
+            out[oi : oi + h.shape[0], oj : oj + h.shape[1]] = h
+        return Mosaic(out, i_min * c, j_min * c, c * step)
+
+    # ---- rendering ---------------------------------------------------------------------------
+
+    def render(self, max_px: int = 640) -> tuple[np.ndarray, MapLayout | None]:
+        """BGR image: height colour-mapped (TURBO, lowest known -> 0, highest -> 255), unknown
+        cells grey, north up, with a colour bar in metres, a scale bar and a north arrow."""
+        font = cv2.FONT_HERSHEY_SIMPLEX
+        m = self.mosaic()
+        if m is None:
+            img = np.full((120, 360, 3), 40, np.uint8)
+            cv2.putText(img, f"{self.keys.vehicle}: no map yet", (12, 66), font, 0.6, (230, 230, 230), 1, cv2.LINE_AA)
+            return img, None
+        rows, cols = m.height.shape
+        known = np.isfinite(m.height)
+        lo = float(np.nanmin(m.height)) if known.any() else 0.0
+        hi = float(np.nanmax(m.height)) if known.any() else 1.0
+        span = hi - lo if hi - lo > 1e-6 else 1.0
+        level = np.zeros(m.height.shape, np.uint8)
+        level[known] = np.round((m.height[known] - lo) / span * 255.0).astype(np.uint8)
+        cells = cv2.applyColorMap(level, COLORMAP)
+        cells[~known] = UNKNOWN_BGR
+        cells = cells[::-1]  # row 0 of the mosaic is the south edge; images start at the top
+        cell_px = int(np.clip(max_px // max(rows, cols), 1, 16))
+        cells = cv2.resize(cells, (cols * cell_px, rows * cell_px), interpolation=cv2.INTER_NEAREST)
+
+        margin, title_h, bottom_h, right_w = 10, 26, 46, 110
+        map_h, map_w = cells.shape[:2]
+        canvas_h = title_h + max(map_h, 140) + bottom_h
+        canvas_w = margin + max(map_w, 200) + right_w
+        img = np.full((canvas_h, canvas_w, 3), 255, np.uint8)
+        x0, y0 = margin, title_h
+        img[y0 : y0 + map_h, x0 : x0 + map_w] = cells
+        cv2.rectangle(img, (x0 - 1, y0 - 1), (x0 + map_w, y0 + map_h), (0, 0, 0), 1)
+        title = f"{self.keys.vehicle}  {len(self.tiles)} tiles, {self.cells_known()} cells known"
+        cv2.putText(img, title, (x0, 18), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+
+        # Colour bar with the height range in metres.
+        bx, bh = x0 + max(map_w, 200) + 14, max(map_h, 140) - 30
+        ramp = np.linspace(255, 0, bh).astype(np.uint8).reshape(-1, 1)
+        img[y0 + 24 : y0 + 24 + bh, bx : bx + 14] = cv2.applyColorMap(ramp, COLORMAP).repeat(14, axis=1)
+        cv2.putText(img, f"{hi:.1f} m", (bx + 18, y0 + 32), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(img, f"{lo:.1f} m", (bx + 18, y0 + 24 + bh), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        img[y0 : y0 + 12, bx : bx + 14] = UNKNOWN_BGR
+        cv2.putText(img, "unknown", (bx + 18, y0 + 10), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+
+        # North arrow, top-right of the map.
+        ax, ay = x0 + max(map_w, 200) - 14, y0 + 30
+        cv2.arrowedLine(img, (ax, ay), (ax, ay - 22), (0, 0, 0), 2, cv2.LINE_AA, tipLength=0.35)
+        cv2.putText(img, "N", (ax - 5, ay + 14), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+
+        # Scale bar: the largest 1-2-5 length that fits in a third of the map width.
+        px_per_m = cell_px / m.cell_size_m
+        want_m = max(map_w / 3.0, 20) / px_per_m
+        exp = 10.0 ** math.floor(math.log10(want_m))
+        length_m = max(f * exp for f in (1.0, 2.0, 5.0) if f * exp <= want_m)
+        length_px = max(1, int(round(length_m * px_per_m)))
+        sy = y0 + max(map_h, 140) + 18
+        cv2.line(img, (x0, sy), (x0 + length_px, sy), (0, 0, 0), 2)
+        for x in (x0, x0 + length_px):
+            cv2.line(img, (x, sy - 5), (x, sy + 5), (0, 0, 0), 1)
+        cv2.putText(img, f"{length_m:g} m", (x0 + length_px + 8, sy + 5), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+
+        layout = MapLayout(x0, y0, cell_px, rows, cols, m.north0_m, m.east0_m, m.cell_size_m, lo, hi)
+        return img, layout
+
+    def write_png(self, path: str | Path) -> MapLayout | None:
+        """Render and replace ``path`` atomically (a viewer never sees a half-written file)."""
+        path = Path(path)
+        img, layout = self.render()
+        ok, data = cv2.imencode(".png", img)
+        if not ok:
+            raise RuntimeError("PNG encoding failed")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(data.tobytes())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return layout
+
+    # ---- summary -----------------------------------------------------------------------------
+
+    def summary(self) -> str:
+        """One line: map size, height range, vehicle status and avoidance state, error counts."""
+        parts = [f"{self.keys.vehicle}: {len(self.tiles)} tiles, {self.cells_known()} cells known"]
+        m = self.mosaic()
+        if m is not None and np.isfinite(m.height).any():
+            parts.append(f"height {float(np.nanmin(m.height)):.1f}..{float(np.nanmax(m.height)):.1f} m")
+        if self.status is None:
+            parts.append("status: none yet")
+        else:
+            age = time.monotonic() - (self.status_rx_monotonic or time.monotonic())
+            state = self.status.get("state", "?")
+            parts.append(f"status #{self.status.get('seq')} {state} ({age:.1f} s ago)")
+        if self.avoidance is not None:
+            a = self.avoidance
+            climb = a.get("climb_rate_mps")
+            climb_txt = f"{climb:+.2f} m/s" if isinstance(climb, (int, float)) else "-"
+            parts.append(f"avoidance {a.get('mode')} {'ENGAGED' if a.get('engaged') else 'clear'} climb {climb_txt}")
+        bad = self.counts["bad_tiles"] + self.counts["bad_json"]
+        parts.append(f"rx {self.counts['tiles_rx']} tiles, {bad} bad, {self.counts['stale_tiles']} stale")
+        return " | ".join(parts)
+
+
+class GroundStation:
+    """The Zenoh side: subscriptions and map queries feeding a :class:`GroundMap`.
+
+    Zenoh delivers samples on its own threads; they are queued and applied by :meth:`poll` on
+    the caller's thread, so the map is only ever touched by one thread.
+    """
+
+    def __init__(self, cfg: ZenohConfig, gmap: GroundMap | None = None, *, query_timeout_s: float = 5.0,
+                 max_queue: int = 10_000) -> None:
+        self.cfg = cfg
+        self.map = gmap or GroundMap(cfg.vehicle_name)
+        self.keys = self.map.keys
+        self.query_timeout_s = query_timeout_s
+        self._q: queue.Queue = queue.Queue(maxsize=max_queue)
+        self._resync = threading.Event()
+        self._session = None
+        self._declared: list[Any] = []
+        self.dropped = 0
+        self.syncs = 0
+
+    def open(self) -> None:
+        import zenoh
+
+        try:
+            self._session = zenoh.open(zenoh_config(self.cfg))
+        except zenoh.ZError as exc:
+            raise BusError(f"zenoh: cannot open the ground station's {self.cfg.mode} session: {exc}") from None
+        s, k = self._session, self.keys
+        self._declared = [
+            s.declare_subscriber(k.tiles, self._on_sample),
+            s.declare_subscriber(k.status, self._on_sample),
+            s.declare_subscriber(k.avoidance, self._on_sample),
+            # The vehicle's token appearing (at start-up or after a link loss) means "ask again".
+            s.liveliness().declare_subscriber(k.alive, self._on_alive, history=True),
+        ]
+        self._resync.set()
+
+    def close(self) -> None:
+        for d in reversed(self._declared):
+            try:
+                d.undeclare()
+            except Exception:  # noqa: BLE001 - best effort on teardown
+                pass
+        self._declared = []
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    def __enter__(self) -> "GroundStation":
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @staticmethod
+    def _stamp(sample) -> int | None:
+        ts = sample.timestamp
+        return None if ts is None else ts.get_time_as_ntp64().as_nanos()
+
+    def _on_sample(self, sample) -> None:
+        try:
+            self._q.put_nowait((str(sample.key_expr), sample.payload.to_bytes(), self._stamp(sample)))
+        except queue.Full:
+            self.dropped += 1
+
+    def _on_alive(self, sample) -> None:
+        import zenoh
+
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._resync.set()
+
+    def sync(self) -> int:
+        """Ask the vehicle for its whole map (``terrain/tile/**``); returns the tiles applied."""
+        self._resync.clear()
+        self.syncs += 1
+        applied = 0
+        for reply in self._session.get(f"{self.keys.root}/terrain/tile/**", timeout=self.query_timeout_s):
+            sample = reply.ok
+            if sample is None:
+                self.map.reject("query_errors", f"map query error: {reply.err.payload.to_bytes()[:200]!r}")
+                continue
+            applied += self.map.apply(str(sample.key_expr), sample.payload.to_bytes(), self._stamp(sample))
+        return applied
+
+    def poll(self) -> int:
+        """Apply queued samples (and re-sync when asked); returns the samples handled."""
+        if self._resync.is_set():
+            self.sync()
+        n = 0
+        while True:
+            try:
+                key, payload, stamp = self._q.get_nowait()
+            except queue.Empty:
+                return n
+            self.map.apply(key, payload, stamp)
+            n += 1
+
+    def run(self, *, duration_s: float = 0.0, png: str | None = None, png_every_s: float = 2.0,
+            summary_every_s: float = 1.0, out: TextIO | None = None, tick_s: float = 0.05,
+            stop: threading.Event | None = None) -> None:
+        """Poll until ``duration_s`` passed (0: forever) or ``stop`` is set, writing the PNG and summary."""
+        out = out or sys.stdout
+        start = time.monotonic()
+        next_png = next_summary = start
+        while True:
+            now = time.monotonic()
+            self.poll()
+            if png and now >= next_png:
+                self.map.write_png(png)
+                next_png = now + png_every_s
+            if summary_every_s > 0 and now >= next_summary:
+                print(f"[{now - start:7.1f} s] {self.map.summary()}", file=out, flush=True)
+                next_summary = now + summary_every_s
+            if (duration_s and now - start >= duration_s) or (stop is not None and stop.is_set()):
+                break
+            time.sleep(tick_s)
+        self.poll()
+        if png:
+            self.map.write_png(png)
+        print(f"[{time.monotonic() - start:7.1f} s] final: {self.map.summary()}", file=out, flush=True)
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------------------------
+
+
+def configure_parser(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="YAML", help="take the zenoh section (vehicle, endpoints, TLS file) from this file")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint of the vehicle or a router, e.g. tcp/192.168.1.10:7447 (repeatable)")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help="endpoint to listen on (repeatable)")
+    p.add_argument("--mode", choices=("peer", "client"), help="Zenoh mode (default: peer, or the config file's)")
+    p.add_argument("--vehicle", help="vehicle name: the <vehicle> of companion/<vehicle>/... (default vehicle1)")
+    p.add_argument("--zenoh-config", metavar="JSON5", help="extra Zenoh config file (TLS, access control)")
+    p.add_argument("--multicast-scouting", action="store_true", help="also discover the vehicle by UDP multicast")
+    p.add_argument("--png", metavar="PATH", help="rewrite this PNG of the map every --png-every seconds")
+    p.add_argument("--png-every", type=float, default=2.0, metavar="S")
+    p.add_argument("--summary-every", type=float, default=1.0, metavar="S", help="0 = only the final summary")
+    p.add_argument("--duration", type=float, default=0.0, metavar="S", help="stop after S seconds (0 = run until Ctrl-C)")
+
+
+def _settings(args: argparse.Namespace) -> ZenohConfig:
+    cfg = load_config(args.config).zenoh if args.config else ZenohConfig()
+    changes: dict[str, Any] = {}
+    if args.connect:
+        changes["connect"] = tuple(args.connect)
+    if args.listen:
+        changes["listen"] = tuple(args.listen)
+    if args.mode:
+        changes["mode"] = args.mode
+    if args.vehicle:
+        changes["vehicle_name"] = args.vehicle
+    if args.zenoh_config:
+        changes["config_file"] = args.zenoh_config
+    if args.multicast_scouting:
+        changes["multicast_scouting"] = True
+    return replace(cfg, **changes)
+
+
+def main(args: argparse.Namespace) -> int:
+    for name in ("png_every", "summary_every", "duration"):
+        if getattr(args, name) < 0 or not math.isfinite(getattr(args, name)):
+            print(f"companion ground: --{name.replace('_', '-')} must be a finite number >= 0", file=sys.stderr)
+            return 2
+    if args.png_every <= 0:
+        print("companion ground: --png-every must be > 0", file=sys.stderr)
+        return 2
+    try:
+        cfg = _settings(args)
+        station = GroundStation(cfg)
+        station.open()
+    except (ConfigError, BusError) as exc:
+        print(f"companion ground: {exc}", file=sys.stderr)
+        return 1
+    stop = threading.Event()
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        station.run(duration_s=args.duration, png=args.png, png_every_s=args.png_every,
+                    summary_every_s=args.summary_every, stop=stop)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        station.close()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    return 0

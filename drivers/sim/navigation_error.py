@@ -1,0 +1,184 @@
+"""EKF-like navigation error whose reported covariance is exactly the injected error statistics.
+
+A real autopilot's estimate is truth plus a slowly wandering error, and its filter reports a
+covariance for it. The simulator reverses that: it injects an error with *known* statistics and
+reports those statistics, so a consumer that trusts the reported covariance is right to.
+
+Model (per component of position N/E/D, velocity N/E/D, attitude N/E/D): a first-order
+Gauss-Markov process
+
+    e_{k+1} = phi e_k + sqrt(1 - phi^2) sigma w_k,   phi = exp(-dt / tau),   w_k ~ N(0, 1),
+
+started from its stationary law ``e_0 ~ N(0, sigma^2)``. Its marginal covariance is then
+``diag(sigma^2)`` at every instant (not only asymptotically), which is what the vehicle reports
+(PX4's ODOMETRY diagonal, ESTIMATOR_STATUS accuracies; ArduPilot's GPS_RAW_INT accuracies). The
+normalised estimation error squared ``e^T P^-1 e`` is therefore chi-square with 9 degrees of
+freedom at every sample, though consecutive samples are correlated over ``tau``.
+
+The attitude error is a rotation vector in NED with ``R_true = Exp(e_att) R_est`` (the
+convention of companion.messages.NavState); equal roll and pitch sigmas make the roll/pitch/yaw
+variances PX4 reports the same numbers to first order whatever the heading.
+
+The simulated GPS receiver measures truth plus the position error plus white noise: the
+estimate follows GPS, so the GPS error and the estimate error are mostly the same slow error, and
+the EKF innovations (GPS minus estimate) are the white part. Test ratios follow EKF3's form
+``|innovation|^2 / (gate^2 * innovation variance)`` (AP_NavEKF3_PosVelFusion.cpp).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.geometry import so3_exp
+
+POS = slice(0, 3)
+VEL = slice(3, 6)
+ATT = slice(6, 9)
+
+
+@dataclass(frozen=True, slots=True)
+class NavErrorSpec:
+    """Stationary sigmas and correlation times of the 9 error components.
+
+    sigma: (9,) [pos N, E, D (m), vel N, E, D (m/s), att N, E, D (rad)]; tau_s: (9,) seconds.
+    """
+
+    sigma: tuple[float, ...]
+    tau_s: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        if len(self.sigma) != 9 or len(self.tau_s) != 9:
+            raise ValueError(f"NavErrorSpec needs 9 sigmas and 9 correlation times, got {len(self.sigma)} and {len(self.tau_s)}")
+        for i, (s, t) in enumerate(zip(self.sigma, self.tau_s)):
+            if not (math.isfinite(s) and s >= 0):
+                raise ValueError(f"NavErrorSpec.sigma[{i}] must be finite and >= 0, got {s!r}")
+            if not (math.isfinite(t) and t > 0):
+                raise ValueError(f"NavErrorSpec.tau_s[{i}] must be finite and > 0, got {t!r}")
+
+    @classmethod
+    def from_config(cls, sim) -> "NavErrorSpec":
+        """From a :class:`companion.config.SimConfig`."""
+        h, v, vel = sim.nav_pos_sigma_h_m, sim.nav_pos_sigma_v_m, sim.nav_vel_sigma_mps
+        tilt, yaw = math.radians(sim.nav_tilt_sigma_deg), math.radians(sim.nav_yaw_sigma_deg)
+        return cls(
+            sigma=(h, h, v, vel, vel, vel, tilt, tilt, yaw),
+            tau_s=(sim.nav_pos_tau_s,) * 3 + (sim.nav_vel_tau_s,) * 3 + (sim.nav_att_tau_s,) * 3,
+        )
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """(9, 9) the stationary covariance diag(sigma^2): what the vehicle reports."""
+        return np.diag(np.square(self.sigma))
+
+
+class GaussMarkovNavError:
+    """The injected error e (9,), advanced with ``step(dt)``; exact discretisation for any dt."""
+
+    def __init__(self, spec: NavErrorSpec, rng: np.random.Generator):
+        self.spec = spec
+        self.rng = rng
+        self._sigma = np.asarray(spec.sigma, float)
+        self._tau = np.asarray(spec.tau_s, float)
+        self.e = self._sigma * rng.standard_normal(9)
+
+    def step(self, dt: float) -> None:
+        if not dt > 0:
+            raise ValueError(f"GaussMarkovNavError.step needs dt > 0, got {dt!r}")
+        phi = np.exp(-dt / self._tau)
+        self.e = phi * self.e + np.sqrt(1.0 - phi * phi) * self._sigma * self.rng.standard_normal(9)
+
+    @property
+    def position_error_m(self) -> np.ndarray:
+        return self.e[POS]
+
+    @property
+    def velocity_error_mps(self) -> np.ndarray:
+        return self.e[VEL]
+
+    @property
+    def attitude_error_rad(self) -> np.ndarray:
+        return self.e[ATT]
+
+    def estimated_rotation(self, R_true: np.ndarray) -> np.ndarray:
+        """R_est with R_true = Exp(e_att) R_est, i.e. R_est = Exp(-e_att) R_true. (3, 3)."""
+        return so3_exp(-self.e[ATT]) @ R_true
+
+
+def normalised_error_squared(error: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """NEES ``e^T P^-1 e``: error (..., k), covariance (k, k) or (..., k, k) -> (...)."""
+    error = np.asarray(error, float)
+    solved = np.linalg.solve(covariance, error[..., None])[..., 0]
+    return np.sum(error * solved, axis=-1)
+
+
+def innovation_test_ratio(innovation: np.ndarray, innovation_variance: np.ndarray, gate_sigma: float) -> float:
+    """EKF3-style consistency test ratio ``sum(innov^2) / (gate^2 * sum(var))``; < 1 passes the gate.
+
+    innovation, innovation_variance: (k,) for the axes fused together (e.g. north and east).
+    """
+    innovation = np.asarray(innovation, float)
+    var = float(np.sum(innovation_variance))
+    if not var > 0:
+        return 0.0
+    return float(np.sum(innovation * innovation) / (gate_sigma * gate_sigma * var))
+
+
+@dataclass(slots=True)
+class GpsFix:
+    """One simulated GPS solution: position/velocity error about truth and its 1-sigma accuracies."""
+
+    position_error_m: np.ndarray  # (3,) NED error of the fix about truth
+    velocity_error_mps: np.ndarray  # (3,)
+    h_acc_m: float
+    v_acc_m: float
+    vel_acc_mps: float
+    innovation_pos_m: np.ndarray  # (3,) fix minus navigation estimate
+    innovation_vel_mps: np.ndarray  # (3,)
+
+
+class GpsReceiver:
+    """GPS = truth + navigation position error + white noise; reports accuracies from the same sigmas."""
+
+    def __init__(self, nav: GaussMarkovNavError, noise_m: float, vel_noise_mps: float, rng: np.random.Generator):
+        if not (math.isfinite(noise_m) and noise_m >= 0 and math.isfinite(vel_noise_mps) and vel_noise_mps >= 0):
+            raise ValueError(f"GPS noise must be finite and >= 0, got {noise_m!r}, {vel_noise_mps!r}")
+        self.nav = nav
+        self.noise_m = noise_m
+        self.vel_noise_mps = vel_noise_mps
+        self.rng = rng
+        self.fix = self.sample()
+
+    def sample(self) -> GpsFix:
+        """Draw a new fix (call at the receiver rate)."""
+        s = np.asarray(self.nav.spec.sigma)
+        white_p = self.noise_m * self.rng.standard_normal(3)
+        white_v = self.vel_noise_mps * self.rng.standard_normal(3)
+        self.fix = GpsFix(
+            position_error_m=self.nav.position_error_m + white_p,
+            velocity_error_mps=self.nav.velocity_error_mps + white_v,
+            # the fix's own 1-sigma: the slow error plus the white noise, per axis
+            h_acc_m=float(math.hypot(s[0], self.noise_m)),
+            v_acc_m=float(math.hypot(s[2], self.noise_m)),
+            vel_acc_mps=float(math.hypot(s[3], self.vel_noise_mps)),
+            innovation_pos_m=white_p,
+            innovation_vel_mps=white_v,
+        )
+        return self.fix
+
+    def test_ratios(self, gate_sigma: float = 5.0) -> tuple[float, float, float]:
+        """(velocity, horizontal position, vertical position) innovation test ratios.
+
+        The innovation variance is measurement noise plus the estimate's variance (R + H P H^T).
+        Gate 5 sigma = EKF3's default VEL_I_GATE / POS_I_GATE / HGT_I_GATE of 500 (centi-sigma).
+        """
+        s = np.asarray(self.nav.spec.sigma)
+        fix = self.fix
+        var_p = self.noise_m ** 2 + s[POS] ** 2
+        var_v = self.vel_noise_mps ** 2 + s[VEL] ** 2
+        vel = innovation_test_ratio(fix.innovation_vel_mps, var_v, gate_sigma)
+        pos_h = innovation_test_ratio(fix.innovation_pos_m[:2], var_p[:2], gate_sigma)
+        pos_v = innovation_test_ratio(fix.innovation_pos_m[2:], var_p[2:], gate_sigma)
+        return vel, pos_h, pos_v
