@@ -138,6 +138,7 @@ class MapperConfig:
     converged_rel_depth_sigma: float = _f(0.1, "", 1e-4, 1.0, "converged when sigma_depth / depth falls below this")
     confidence_max: int = _f(100, "", 1, 10000)
     init_index_max: float = _f(20.0, "", 0.0, 10000.0, "initialisation index when nothing matched")
+    init_exclusion_chi2: float = _f(23.0, "", 0.1, 1000.0, "an unmatched measurement this close (Mahalanobis) to a stored feature is not initialised (23 = 1e-5 tail)")
     converge_min_updates: int = _f(3, "", 1, 10000, "EKF updates a feature needs before it may count as converged")
     prior_min_range_m: float = _f(1.0, "m", 0.01, 1e4, "depth prior ranges are clipped to at least this")
     prior_max_range_m: float = _f(200.0, "m", 1.0, 1e6, "range given to rays that miss the ground (rho = 1/this)")
@@ -219,6 +220,10 @@ class SimConfig:
     scenario: str = _f("default", doc="name in config/scenarios/ or a path to a YAML scenario")
     seed: int = _f(1, "", 0, 2**31 - 1)
     speedup: float = _f(1.0, "", 0.1, 1000.0, "simulated seconds per wall-clock second")
+    # --- world renderer and synthetic camera (drivers/sim/renderer.py, docs/sim.md) ---
+    image_noise_sigma: float = _f(2.0, "gray", 0.0, 50.0, "synthetic camera: additive Gaussian sensor noise")
+    image_blur_sigma_px: float = _f(0.0, "px", 0.0, 10.0, "synthetic camera: Gaussian optical blur (0 = none)")
+    max_pose_age_s: float = _f(1.0, "s", 0.01, 60.0, "synthetic camera: refuse to render from a vehicle pose older than this")
     # --- simulated vehicle (drivers/sim/vehicle.py, docs/sim.md) ---
     flavour: Literal["ardupilot", "px4"] = _f("ardupilot", doc="which autopilot the simulated vehicle imitates")
     physics_rate_hz: float = _f(400.0, "Hz", 50.0, 2000.0, "fixed physics step of the simulated vehicle (simulated time)")

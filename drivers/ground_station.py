@@ -28,6 +28,7 @@ from typing import Any, TextIO
 
 import cv2
 import numpy as np
+import zenoh
 
 from companion.config import ConfigError, ZenohConfig, load_config
 from drivers.zenoh_bus import AVOIDANCE_SCHEMA, STATUS_SCHEMA, BusError, BusKeys, zenoh_config
@@ -177,8 +178,17 @@ class GroundMap:
     def cells_known(self) -> int:
         return int(sum(int(np.count_nonzero(t.count > 0)) for t in self.tiles.values()))
 
-    def mosaic(self) -> Mosaic | None:
-        """All tiles on one grid (decimated when wider than :data:`MAX_MOSAIC_CELLS`); None if empty."""
+    def height_range(self) -> tuple[float, float] | None:
+        """Lowest and highest known height (m), None when no cell is known."""
+        known = [t.height[t.count > 0] for t in self.tiles.values()]
+        known = [h for h in known if h.size]
+        if not known:
+            return None
+        return float(min(np.nanmin(h) for h in known)), float(max(np.nanmax(h) for h in known))
+
+    def mosaic(self, max_cells: int = MAX_MOSAIC_CELLS) -> Mosaic | None:
+        """All tiles on one grid, keeping every ``step``-th cell so that neither side exceeds
+        ``max_cells`` (``step`` = 1 for maps that fit); None when there are no tiles."""
         if not self.tiles:
             return None
         ref = next(iter(self.tiles.values()))
@@ -187,7 +197,7 @@ class GroundMap:
         tys = [k[1] for k in self.tiles]
         i_min, j_min = min(txs) * t, min(tys) * t  # global cell index of the south-west corner
         rows, cols = (max(txs) + 1) * t - i_min, (max(tys) + 1) * t - j_min
-        step = max(1, math.ceil(max(rows, cols) / MAX_MOSAIC_CELLS))
+        step = max(1, math.ceil(max(rows, cols) / max(1, int(max_cells))))
         out = np.full((math.ceil(rows / step), math.ceil(cols / step)), np.nan, dtype=np.float32)
         for (tx, ty), tile in self.tiles.items():
             gi, gj = tx * t - i_min, ty * t - j_min  # tile origin in mosaic cells
@@ -203,7 +213,7 @@ class GroundMap:
         """BGR image: height colour-mapped (TURBO, lowest known -> 0, highest -> 255), unknown
         cells grey, north up, with a colour bar in metres, a scale bar and a north arrow."""
         font = cv2.FONT_HERSHEY_SIMPLEX
-        m = self.mosaic()
+        m = self.mosaic(max_cells=max_px)
         if m is None:
             img = np.full((120, 360, 3), 40, np.uint8)
             cv2.putText(img, f"{self.keys.vehicle}: no map yet", (12, 66), font, 0.6, (230, 230, 230), 1, cv2.LINE_AA)
@@ -284,9 +294,9 @@ class GroundMap:
     def summary(self) -> str:
         """One line: map size, height range, vehicle status and avoidance state, error counts."""
         parts = [f"{self.keys.vehicle}: {len(self.tiles)} tiles, {self.cells_known()} cells known"]
-        m = self.mosaic()
-        if m is not None and np.isfinite(m.height).any():
-            parts.append(f"height {float(np.nanmin(m.height)):.1f}..{float(np.nanmax(m.height)):.1f} m")
+        span = self.height_range()
+        if span is not None:
+            parts.append(f"height {span[0]:.1f}..{span[1]:.1f} m")
         if self.status is None:
             parts.append("status: none yet")
         else:
@@ -324,8 +334,6 @@ class GroundStation:
         self.syncs = 0
 
     def open(self) -> None:
-        import zenoh
-
         try:
             self._session = zenoh.open(zenoh_config(self.cfg))
         except zenoh.ZError as exc:
@@ -358,6 +366,12 @@ class GroundStation:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def links(self) -> list[str]:
+        """Remote locators of the open Zenoh links (empty while not connected)."""
+        if self._session is None:
+            return []
+        return [str(link.dst) for link in self._session.info.links()]
+
     @staticmethod
     def _stamp(sample) -> int | None:
         ts = sample.timestamp
@@ -370,8 +384,6 @@ class GroundStation:
             self.dropped += 1
 
     def _on_alive(self, sample) -> None:
-        import zenoh
-
         if sample.kind == zenoh.SampleKind.PUT:
             self._resync.set()
 

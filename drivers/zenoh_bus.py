@@ -294,7 +294,7 @@ class ZenohBus:
         self._opened = True
         self._stop.clear()
         try:
-            self._attach(self._open_session(zcfg))
+            session = self._open_session(zcfg)
         except zenoh.ZError as exc:
             if self.cfg.mode == "client":
                 log.warning("zenoh: router unreachable (%s); retrying in the background", exc)
@@ -306,6 +306,12 @@ class ZenohBus:
                 f"zenoh: cannot open a {self.cfg.mode} session (listen={list(self.cfg.listen)}, "
                 f"connect={list(self.cfg.connect)}): {exc}"
             ) from None
+        try:
+            self._attach(session)
+        except zenoh.ZError as exc:
+            session.close()
+            self._opened = False
+            raise BusError(f"zenoh: cannot declare the vehicle's keys under {self.keys.root}: {exc}") from None
 
     def close(self) -> None:
         """Undeclare everything and close the session (idempotent)."""
@@ -368,7 +374,13 @@ class ZenohBus:
             if self._stop.is_set():
                 session.close()
                 return
-            self._attach(session)
+            try:
+                self._attach(session)
+            except zenoh.ZError as exc:  # e.g. refused by the router's access control
+                log.error("zenoh: connected but cannot declare under %s: %s", self.keys.root, exc)
+                session.close()
+                delay = self.cfg.reconnect_max_s
+                continue
             log.info("zenoh: connected to the router")
             self._republish_cache()
             return
@@ -410,17 +422,25 @@ class ZenohBus:
         if isinstance(tx, bool) or isinstance(ty, bool) or int(tx) != tx or int(ty) != ty:
             raise ValueError(f"tile index must be integers, got ({tx!r}, {ty!r})")
         payload = bytes(payload)
+        tx, ty = int(tx), int(ty)
         session = self._session
-        ts = session.new_timestamp() if session is not None else None
-        with self._lock:
-            self._tiles[(int(tx), int(ty))] = (payload, ts)
         if session is None:
-            self._count("unpublished_offline")
+            with self._lock:
+                self._tiles[(tx, ty)] = (payload, None)
+                self._n["unpublished_offline"] += 1
             return
+        # The same stamp goes on the live sample and on later query replies, so a subscriber can
+        # tell which of the two is newer.
+        try:
+            ts = session.new_timestamp()
+        except zenoh.ZError:  # the session is closing underneath us
+            ts = None
+        with self._lock:
+            self._tiles[(tx, ty)] = (payload, ts)
         try:
             session.put(self.keys.tile(tx, ty), payload, encoding=TILE_ENCODING, timestamp=ts,
                         priority=zenoh.Priority.DATA_LOW, congestion_control=zenoh.CongestionControl.DROP)
-        except zenoh.ZError as exc:  # session closing underneath us
+        except zenoh.ZError as exc:
             log.warning("zenoh: tile (%d, %d) not published: %s", tx, ty, exc)
             self._count("publish_errors")
             return

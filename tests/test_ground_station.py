@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import json
 import socket
 import time
@@ -55,6 +54,18 @@ def test_mosaic_places_tiles_in_the_local_frame():
     assert m.height[5, 4] == pytest.approx(-100 + 20 + 5 + 0.4)
     assert np.isnan(m.height[T:2 * T]).all()  # the tile row nobody saw
     assert g.cells_known() == 2 * T * T
+
+
+def test_large_maps_are_decimated_on_the_cell_lattice():
+    g = GroundMap("v1")
+    feed(g, make_tile(0, -1))
+    feed(g, make_tile(1, 0))
+    full = g.mosaic()
+    m = g.mosaic(max_cells=6)  # 16 x 16 cells -> every 3rd cell
+    assert m.height.shape == (6, 6) and m.cell_size_m == 3 * CELL
+    assert (m.north0_m, m.east0_m) == (full.north0_m, full.east0_m)
+    np.testing.assert_array_equal(m.height, full.height[::3, ::3])
+    assert g.height_range() == (float(np.nanmin(full.height)), float(np.nanmax(full.height)))
 
 
 def test_unknown_cells_stay_unknown_and_stale_tiles_lose():
@@ -181,6 +192,23 @@ def test_late_ground_station_reassembles_the_map_and_follows_changes():
             line = station.map.summary()
             assert "6 tiles" in line and "mapping" in line and "ENGAGED" in line and "+1.50 m/s" in line
             assert station.map.counts["bad_tiles"] == 0
+
+
+def test_station_asks_again_when_the_vehicle_appears():
+    """A vehicle that comes up after the station (or comes back after a link loss) is asked for
+    its map when its liveliness token appears. Here the vehicle never publishes a tile live (its
+    map is served by a map_provider), so the query is the only way the station can get them."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    tiles = [make_tile(3, ty) for ty in range(4)]
+    with GroundStation(cfg(listen=(ep,))) as station:
+        station.poll()  # the start-up query: nobody there yet
+        assert station.syncs == 1 and not station.map.tiles
+        provider = lambda: [(t.tx, t.ty, encode_tile(t)) for t in tiles]  # noqa: E731
+        with ZenohBus(cfg(connect=(ep,)), map_provider=provider) as bus:
+            assert poll_until(station, lambda: len(station.map.tiles) == len(tiles), timeout=8)
+            assert station.syncs >= 2
+            assert all(station.map.tiles[(t.tx, t.ty)].same_as(t) for t in tiles)
+            assert bus.stats().published_tiles == 0
 
 
 def test_ground_command_writes_the_png_and_prints_summaries(tmp_path, capsys):

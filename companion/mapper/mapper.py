@@ -26,7 +26,12 @@ from companion.geometry import CameraMount, PinholeCamera
 from companion.mapper import cartesian, inverse_depth
 from companion.mapper.database import FeatureDatabase
 from companion.mapper.depth_prior import DepthPrior, prior_ranges
-from companion.mapper.matching import gate_and_match, innovation_covariance, mahalanobis_distances
+from companion.mapper.matching import (
+    gate_and_match,
+    innovation_covariance,
+    mahalanobis_distances,
+    near_stored_features,
+)
 from companion.mapper.projection import CameraPose, camera_ray_from_pixel
 from companion.mapper.update import ekf_update
 from companion.messages import NavState, TerrainPoints
@@ -62,10 +67,13 @@ class MapperStep:
     dropped (``n_dropped``) plus refused feature updates (``n_update_rejected``).
     rejected_reason: non-empty when the whole step was refused (the database is untouched).
     n_ambiguous: measurements inside a gate but not matched (neither used nor initialised).
+    n_excluded: other unmatched measurements not initialised because a stored feature's prediction
+    is within ``init_exclusion_chi2`` (Mahalanobis) or ``min_distance_px`` of them.
     n_prior_fallback: new features whose depth prior fell back to flat ground.
     init_index: the frame's initialisation confidence index.
     matched_ids / matched_measurements (K,): feature ids and the indices (into the input array) of
-    the measurements that updated them; initialised_ids / initialised_measurements likewise.
+    the measurements that updated them; initialised_ids / initialised_measurements likewise;
+    removed_ids: features that left the database this step.
     """
 
     points: TerrainPoints
@@ -79,12 +87,14 @@ class MapperStep:
     n_dropped: int = 0
     n_update_rejected: int = 0
     n_ambiguous: int = 0
+    n_excluded: int = 0
     n_prior_fallback: int = 0
     init_index: float = 0.0
     matched_ids: np.ndarray = field(default_factory=_empty_ids)
     matched_measurements: np.ndarray = field(default_factory=_empty_ids)
     initialised_ids: np.ndarray = field(default_factory=_empty_ids)
     initialised_measurements: np.ndarray = field(default_factory=_empty_ids)
+    removed_ids: np.ndarray = field(default_factory=_empty_ids)
 
 
 @dataclass(frozen=True, slots=True)
@@ -215,6 +225,7 @@ class Mapper:
         # Corrupt features (cannot happen through the update, which refuses non-finite results) go.
         slots = db.active_slots()
         corrupt = ~(np.isfinite(db.y[slots]).all(axis=1) & np.isfinite(db.P[slots]).all(axis=(1, 2)))
+        removed_ids = [db.ids[slots[corrupt]].copy()]
         db.remove(slots[corrupt])
         n_removed = int(corrupt.sum())
         slots = slots[~corrupt]
@@ -224,6 +235,7 @@ class Mapper:
         visible = (h_c[:, 0] > 0) & self.camera.in_image(uv_pred)
         leaving = slots[~visible]
         emitted.append(self._emitted_points(nav.t_s, leaving[db.converged[leaving]]))
+        removed_ids.append(db.ids[leaving].copy())
         db.remove(leaving)
         n_removed += len(leaving)
         slots, uv_pred, h_c = slots[visible], uv_pred[visible], h_c[visible]
@@ -261,7 +273,8 @@ class Mapper:
         init_index = max(0.0, cfg.init_index_max * (1.0 - n_matched / db.capacity))
         used = np.zeros(len(z), dtype=bool)
         used[match_idx] = True
-        candidates = np.flatnonzero(~used & ~ambiguous)
+        blocked = ambiguous | near_stored_features(Z, z, uv_pred, cfg.init_exclusion_chi2, cfg.min_distance_px)
+        candidates = np.flatnonzero(~used & ~blocked)
         free = db.free_slots()
         replaceable = np.setdiff1d(slots, updated, assume_unique=True)
         replaceable = replaceable[db.confidence[replaceable] < init_index]
@@ -270,6 +283,7 @@ class Mapper:
         targets = np.concatenate([free, replaceable])[:n_new].astype(np.intp)
         replaced = targets[len(free):]
         emitted.append(self._emitted_points(nav.t_s, replaced[db.converged[replaced]]))
+        removed_ids.append(db.ids[replaced].copy())
         db.remove(replaced)
         n_removed += len(replaced)
 
@@ -299,12 +313,14 @@ class Mapper:
             n_dropped=n_dropped,
             n_update_rejected=n_update_rejected,
             n_ambiguous=int(ambiguous.sum()),
+            n_excluded=int((blocked & ~used & ~ambiguous).sum()),
             n_prior_fallback=n_fallback,
             init_index=init_index,
             matched_ids=db.ids[updated].copy(),
             matched_measurements=meas_index[match_idx[ok]].astype(np.int64),
             initialised_ids=new_ids,
             initialised_measurements=meas_index[chosen].astype(np.int64),
+            removed_ids=np.concatenate(removed_ids),
         )
 
     # ------------------------------------------------------------------------------------------

@@ -77,3 +77,17 @@ def gate_and_match(Z: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray, 
     matched[meas_idx] = True
     ambiguous = inside.any(axis=0) & ~matched
     return point_idx, meas_idx, ambiguous
+
+
+def near_stored_features(
+    Z: np.ndarray, z: np.ndarray, g: np.ndarray, exclusion_chi2: float, exclusion_px: float
+) -> np.ndarray:
+    """Measurements that must not start a new feature because a stored one is (probably) the same point.
+
+    Z (N, M) distances of eq. 12, z (M, 2) measurements, g (N, 2) predictions -> (M,) bool:
+    ``Z_ij < exclusion_chi2`` or ``|z_i - g_j| < exclusion_px`` for some ``j``.
+    """
+    if len(g) == 0 or len(z) == 0:
+        return np.zeros(len(z), dtype=bool)
+    d2 = np.sum((z[None, :, :] - g[:, None, :]) ** 2, axis=2)
+    return ((Z < exclusion_chi2) | (d2 < exclusion_px**2)).any(axis=0)

@@ -58,9 +58,9 @@ def horizontal_spread(
     The effective covariance is ``S = cov_ne + c^2/12 I`` (the point's uncertainty convolved with
     the cell's own extent, moment-matched), so a point much smaller than a cell lands in its cell
     and one on a border is shared. Cells whose centre lies within ``n_sigma`` of the point under
-    ``S`` (Mahalanobis) get weight proportional to the Gaussian density there, and the point's own
-    cell always counts; weights are normalised per point to sum to 1 (one point = one unit of
-    evidence). The search is limited to ``max_radius`` cells around the point's cell.
+    ``S`` (Mahalanobis) get weight proportional to the Gaussian density there (a sharp point near a
+    corner reaches no centre within ``n_sigma``: it goes to the nearest centre(s), shared equally);
+    weights are normalised per point to sum to 1 (one point = one unit of evidence). The search is limited to ``max_radius`` cells around the point's cell.
 
     Returns (point_index (M,), cell_ix (M,), cell_iy (M,), weight (M,)); cell index = floor(x/c).
     """
@@ -92,9 +92,10 @@ def horizontal_spread(
         de = pick(fe)[:, None] + cell_m * k
         q = ((pick(qa)[:, None] * dn * dn)[:, :, None] + (pick(qb)[:, None] * dn)[:, :, None] * de[:, None, :]
              + (pick(qc)[:, None] * de * de)[:, None, :])
-        q[:, r, r] = np.minimum(q[:, r, r], g2)  # the point's own cell always counts
         width = 2 * r + 1
-        flat = np.flatnonzero(q.reshape(-1) <= g2)
+        # Cells within n_sigma; a point reaching none of them goes to its nearest centre(s).
+        limit = np.maximum(q.reshape(len(q), -1).min(axis=1) * (1.0 + 1e-9), g2)
+        flat = np.flatnonzero((q.reshape(len(q), -1) <= limit[:, None]).reshape(-1))
         rows, cell = np.divmod(flat, width * width)
         oi, oj = np.divmod(cell, width)
         pts = rows if whole else sel[rows]

@@ -130,7 +130,8 @@ class PointMassMultirotor:
 
     Truth: ``p`` position NED (m), ``v`` velocity NED (m/s), ``yaw`` (rad), ``thrust`` the lagged
     specific thrust vector NED (m/s^2, points up: about (0, 0, -g) in hover), ``landed``.
-    Controller: reference ``p_d``, ``v_d`` (the shaped setpoint) and the velocity integrator.
+    Controller: reference ``p_d``, ``v_d`` (the shaped setpoint, in the estimate's frame) and the
+    velocity integrator; ``err_p``, ``err_v`` the navigation error it flies with (estimate - truth).
     ``ground_down_m``: NED z of the ground plane under the vehicle.
     """
 
@@ -146,6 +147,8 @@ class PointMassMultirotor:
     v_d: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     a_d: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     integ: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    err_p: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    err_v: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     prev_thrust: list[float] = field(default_factory=lambda: [0.0, 0.0, -GRAVITY_MPS2])
     prev_yaw: float = 0.0
     last_dt: float = 0.0025
@@ -157,10 +160,18 @@ class PointMassMultirotor:
 
     # ---- controller ------------------------------------------------------------------------
 
+    def estimate_offset(self, err_p, err_v) -> None:
+        """The navigation error the controller flies with: it regulates ``p + err_p``, ``v + err_v``.
+
+        A real autopilot controls its estimate, not the truth; zero offsets fly the truth.
+        """
+        self.err_p = [float(err_p[0]), float(err_p[1]), float(err_p[2])]
+        self.err_v = [float(err_v[0]), float(err_v[1]), float(err_v[2])]
+
     def reset_reference(self) -> None:
-        """Reference := truth, integrator cleared (on the ground, or when a new mode takes over)."""
-        self.p_d = list(self.p)
-        self.v_d = list(self.v)
+        """Reference := estimate, integrator cleared (on the ground, or when a new mode takes over)."""
+        self.p_d = [self.p[i] + self.err_p[i] for i in range(3)]
+        self.v_d = [self.v[i] + self.err_v[i] for i in range(3)] if not self.landed else [0.0, 0.0, 0.0]
         self.a_d = [0.0, 0.0, 0.0]
         self.integ = [0.0, 0.0, 0.0]
 
@@ -220,8 +231,8 @@ class PointMassMultirotor:
         lim = self.limits
         a = [0.0, 0.0, 0.0]
         for i in range(3):
-            v_c = self.v_d[i] + lim.pos_gain_per_s * (self.p_d[i] - self.p[i])
-            err = v_c - self.v[i]
+            v_c = self.v_d[i] + lim.pos_gain_per_s * (self.p_d[i] - self.p[i] - self.err_p[i])
+            err = v_c - self.v[i] - self.err_v[i]
             self.integ[i] = min(max(self.integ[i] + lim.vel_int_gain_per_s2 * err * dt, -lim.int_limit_mps2), lim.int_limit_mps2)
             a[i] = self.a_d[i] + lim.vel_gain_per_s * err + self.integ[i]
         a_h_max = GRAVITY_MPS2 * math.tan(lim.tilt_max_rad)

@@ -60,7 +60,7 @@ def _polygons(img: np.ndarray, polys: np.ndarray, grays: np.ndarray, wrap: bool)
     mins, maxs = polys.min(axis=1), polys.max(axis=1)
     for poly, lo, hi, g in zip(polys, mins, maxs, grays):
         for off in _offsets(lo, hi, img.shape, wrap):
-            cv2.fillConvexPoly(img, np.round((poly + off) * scale).astype(np.int32), int(g), cv2.LINE_8, _SHIFT)
+            cv2.fillConvexPoly(img, np.round((poly + off) * scale).astype(np.int32), int(g), cv2.LINE_AA, _SHIFT)
 
 
 def _random_convex(rng: np.random.Generator, centres: np.ndarray, radii: np.ndarray, vertices: int,
@@ -115,16 +115,23 @@ def fields(shape: tuple[int, int], texel_m: float, rng: np.random.Generator, wra
     _polygons(img, rects, rng.integers(70, 180, n), wrap)
     # Patches: irregular blobs 1-4 m.
     n = max(1, int(area_m2 / 14))
-    patches = _random_convex(rng, rng.uniform([0, 0], [w, h], (n, 2)), rng.uniform(0.5, 2.0, n) / texel_m, 7, 0.8)
+    patches = _random_convex(rng, rng.uniform([0, 0], [w, h], (n, 2)), rng.uniform(0.5, 2.0, n) / texel_m, 5, 0.8)
     _polygons(img, patches, rng.integers(50, 200, n), wrap)
-    # Rocks and bushes: small, dark or bright, 0.2-0.6 m: the corners seen at 15-40 m.
-    n = max(1, int(area_m2 / 1.6))
-    rocks = _random_convex(rng, rng.uniform([0, 0], [w, h], (n, 2)), rng.uniform(0.12, 0.35, n) / texel_m, 5, 1.0)
+    # Rocks and bushes: small, dark or bright, 0.2-0.7 m: the corners seen at 15-40 m. Triangles and
+    # quadrilaterals: Harris responds to sharp corners, hardly to the obtuse ones of rounder shapes.
+    n = max(2, int(area_m2 / 1.6))
+    rocks = np.concatenate([
+        _random_convex(rng, rng.uniform([0, 0], [w, h], (n // 2, 2)), rng.uniform(0.12, 0.35, n // 2) / texel_m, 3, 0.8),
+        _random_convex(rng, rng.uniform([0, 0], [w, h], (n // 2, 2)), rng.uniform(0.12, 0.35, n // 2) / texel_m, 4, 1.0)[:, [0, 1, 2, 2, 3]][:, [0, 1, 3, 4, 4]][:, :3].repeat(1, axis=0) if False else
+        _random_convex(rng, rng.uniform([0, 0], [w, h], (n // 2, 2)), rng.uniform(0.12, 0.35, n // 2) / texel_m, 4, 1.0)[:, [0, 1, 2, 3, 3]][:, :3],
+    ]) if False else None
+    rocks3 = _random_convex(rng, rng.uniform([0, 0], [w, h], (n // 2, 2)), rng.uniform(0.12, 0.35, n // 2) / texel_m, 3, 0.8)
+    rocks4 = _random_convex(rng, rng.uniform([0, 0], [w, h], (n - n // 2, 2)), rng.uniform(0.12, 0.35, n - n // 2) / texel_m, 4, 1.0)
     dark = rng.random(n) < 0.6
     grays = np.where(dark, rng.integers(15, 60, n), rng.integers(185, 245, n))
-    _polygons(img, rocks, grays, wrap)
-    img = _add_noise(img, 6.0, 1.0, rng, wrap)
-    return _blur(img, 0.6, wrap)
+    _polygons(img, rocks3, grays[: n // 2], wrap)
+    _polygons(img, rocks4, grays[n // 2:], wrap)
+    return _add_noise(img, 6.0, 1.0, rng, wrap)
 
 
 def wall_with_windows(shape: tuple[int, int], windows: np.ndarray | None, rng: np.random.Generator) -> np.ndarray:
@@ -136,7 +143,7 @@ def wall_with_windows(shape: tuple[int, int], windows: np.ndarray | None, rng: n
     img = np.full(shape, int(rng.integers(150, 175)), np.uint8)
     img = _add_noise(img, 1.5, 2.0, rng, False)
     if windows is not None:
-        grays = rng.integers(25, 75, len(windows))
+        grays = rng.integers(20, 60, len(windows))
         for (c0, r0, c1, r1), g in zip(windows, grays):
             img[r0:r1, c0:c1] = g
             # A faint reflection gradient inside the pane, low contrast so it adds no corners.

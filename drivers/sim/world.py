@@ -656,7 +656,7 @@ class World:
         eps = 1e-9
         for index, (n, off, v0, e1, e2, poly, edges) in enumerate(self._ray_faces):
             denom = d @ n
-            with np.errstate(divide="ignore", invalid="ignore"):
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 t = (off - o @ n) / denom
             cand = np.nonzero((np.abs(denom) > 1e-12) & (t > eps) & (t < best))[0]
             if not len(cand):

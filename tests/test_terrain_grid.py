@@ -1,0 +1,355 @@
+"""Terrain evidence grid: fusion, gating, spreading, queries, memory (seed 000, II.E; docs/terrain.md)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion.config import TerrainConfig
+from companion.messages import TerrainPoints
+from companion.terrain import TerrainGrid
+
+
+def points(ne_h, sigma_h=0.5, sigma_ne=0.05):
+    """TerrainPoints at (north, east, height) rows with isotropic horizontal and vertical sigmas."""
+    ne_h = np.atleast_2d(np.asarray(ne_h, dtype=float))
+    pos = np.c_[ne_h[:, 0], ne_h[:, 1], -ne_h[:, 2]]
+    cov = np.zeros((len(pos), 3, 3))
+    cov[:, 0, 0] = cov[:, 1, 1] = np.broadcast_to(np.asarray(sigma_ne, float) ** 2, len(pos))
+    cov[:, 2, 2] = np.broadcast_to(np.asarray(sigma_h, float) ** 2, len(pos))
+    return TerrainPoints(0.0, pos, cov)
+
+
+def patch(n0, e0, size, height, rng=None, sigma_h=0.0):
+    """One point at the centre of every cell of a size x size patch (1 m cells)."""
+    n, e = np.meshgrid(n0 + 0.5 + np.arange(size), e0 + 0.5 + np.arange(size), indexing="ij")
+    h = np.full(n.shape, float(height))
+    if rng is not None:
+        h = h + rng.normal(0, sigma_h, n.shape)
+    return np.c_[n.ravel(), e.ravel(), h.ravel()]
+
+
+# ----------------------------------------------------------------------------------- fusion
+
+
+def test_fusion_converges_to_true_height_and_variance_shrinks():
+    rng = np.random.default_rng(1)
+    grid = TerrainGrid()
+    truth, sigma = 7.3, 0.5
+    variances, errors = [], []
+    for _ in range(40):
+        grid.insert(points(patch(0, 0, 8, truth, rng, sigma), sigma_h=sigma))
+        h, v, n = grid.height_at(np.arange(8) + 0.5, np.full(8, 3.5))
+        variances.append(v.mean())
+        errors.append(np.abs(h - truth).max())
+    variances = np.array(variances)
+    # Information only accumulates (up to the process noise added per update).
+    assert np.all(np.diff(variances) <= grid.process_noise_m2 + 1e-9)
+    assert variances[-1] < variances[0] / 10
+    # 40 measurements of sigma 0.5: the posterior sigma is ~0.08 m; the estimate is within 4 of it.
+    h, v, n = grid.height_at(*np.meshgrid(np.arange(8) + 0.5, np.arange(8) + 0.5))
+    assert np.all(np.abs(h - truth) <= 4 * np.sqrt(v))
+    assert np.sqrt(v.max()) < 0.12
+    # A 3-sigma gate refuses ~0.3% of honest points: a few cells hold 39.
+    assert np.all(n >= 38) and n.mean() > 39.5
+
+
+def test_cell_moves_both_up_and_down():
+    grid = TerrainGrid()
+    for _ in range(5):
+        grid.insert(points([[0.5, 0.5, 5.0]], sigma_h=0.3))
+    h0 = grid.height_at(0.5, 0.5)[0]
+    grid.insert(points([[0.5, 0.5, 5.4]], sigma_h=0.3))
+    h1 = grid.height_at(0.5, 0.5)[0]
+    grid.insert(points([[0.5, 0.5, 4.6]], sigma_h=0.3))
+    grid.insert(points([[0.5, 0.5, 4.6]], sigma_h=0.3))
+    h2 = grid.height_at(0.5, 0.5)[0]
+    assert h1 > h0 and h2 < h1 and abs(h0 - 5.0) < 1e-5
+
+
+def test_single_wild_point_is_rejected_by_a_mapped_cell():
+    grid = TerrainGrid()
+    grid.insert(points(patch(0, 0, 4, 2.0), sigma_h=0.2))
+    grid.insert(points(patch(0, 0, 4, 2.0), sigma_h=0.2))
+    before = grid.tile((0, 0))
+    stats = grid.insert(points([[1.5, 1.5, 32.0]], sigma_h=0.2))
+    assert stats.rejected_outlier == 1 and stats.inserted == 0
+    after = grid.tile((0, 0))
+    assert np.array_equal(after.height, before.height, equal_nan=True)
+    assert np.array_equal(after.count, before.count)
+
+
+def test_wild_point_in_a_batch_of_good_ones_is_bounded():
+    """Mixed into a batch on a mapped area, a wild point is gated out and moves nothing."""
+    rng = np.random.default_rng(2)
+    grid = TerrainGrid()
+    for _ in range(3):
+        grid.insert(points(patch(0, 0, 10, 0.0, rng, 0.3), sigma_h=0.3))
+    batch = np.r_[patch(0, 0, 10, 0.0, rng, 0.3), [[4.5, 4.5, 25.0]]]
+    stats = grid.insert(points(batch, sigma_h=0.3))
+    assert stats.rejected_outlier >= 1
+    h, _, _ = grid.height_at(4.5, 4.5)
+    assert abs(h) < 0.5
+
+
+def test_persistent_new_evidence_moves_the_cell():
+    """A building appears where the map said ground: after `reset_evidence` points of
+    uncontradicted disagreement the cell takes the new height."""
+    grid = TerrainGrid(reset_evidence=3.0)
+    for _ in range(10):
+        grid.insert(points([[0.5, 0.5, 0.0]], sigma_h=0.2))
+    for k in range(2):
+        stats = grid.insert(points([[0.5, 0.5, 10.0]], sigma_h=0.2))
+        assert stats.rejected_outlier == 1
+        assert grid.height_at(0.5, 0.5)[0] == pytest.approx(0.0, abs=1e-6)
+    stats = grid.insert(points([[0.5, 0.5, 10.0]], sigma_h=0.2))
+    assert stats.cells_reset == 1 and stats.inserted == 1
+    h, v, n = grid.height_at(0.5, 0.5)
+    assert h == pytest.approx(10.0, abs=1e-5) and n == 1
+    # From then on the new height is the estimate the gate defends.
+    grid.insert(points([[0.5, 0.5, 10.1]], sigma_h=0.2))
+    assert abs(grid.height_at(0.5, 0.5)[0] - 10.05) < 0.06
+
+
+def test_agreeing_evidence_clears_the_disagreement():
+    grid = TerrainGrid(reset_evidence=3.0)
+    for _ in range(10):
+        grid.insert(points([[0.5, 0.5, 0.0]], sigma_h=0.2))
+    for _ in range(5):
+        grid.insert(points([[0.5, 0.5, 10.0], [0.5, 0.5, 10.0]], sigma_h=0.2))
+        grid.insert(points([[0.5, 0.5, 0.1]], sigma_h=0.2))
+        grid.insert(points([[0.5, 0.5, 0.0], [0.5, 0.5, 0.0]], sigma_h=0.2))
+    assert abs(grid.height_at(0.5, 0.5)[0]) < 0.1
+
+
+def test_process_noise_keeps_the_map_able_to_learn():
+    grid = TerrainGrid(process_noise_m2=0.01)
+    for _ in range(500):
+        grid.insert(points([[0.5, 0.5, 0.0]], sigma_h=0.5))
+    v = grid.height_at(0.5, 0.5)[1]
+    # Steady state of v' = 1/(1/(v+q) + 1/R) is about sqrt(q R) = 0.05, not zero.
+    assert 0.03 < v < 0.08
+
+
+def test_horizontal_uncertainty_spreads_a_point():
+    grid = TerrainGrid()
+    # Well inside a cell and sharp: one cell, full weight (variance = sigma_z^2).
+    s = grid.insert(points([[10.5, 10.5, 3.0]], sigma_h=0.5, sigma_ne=0.01))
+    assert s.cells_touched == 1
+    assert grid.height_at(10.5, 10.5)[1] == pytest.approx(0.25, rel=1e-6)
+    # On a corner: shared equally by the four cells, each with variance 4 sigma_z^2.
+    grid = TerrainGrid()
+    s = grid.insert(points([[20.0, 20.0, 3.0]], sigma_h=0.5, sigma_ne=0.01))
+    assert s.cells_touched == 4
+    _, v, _ = grid.height_at([19.5, 19.5, 20.5, 20.5], [19.5, 20.5, 19.5, 20.5])
+    np.testing.assert_allclose(v, 1.0, rtol=1e-5)
+    # Horizontally vague: many cells, weights summing to one point of information.
+    grid = TerrainGrid()
+    s = grid.insert(points([[30.5, 30.5, 3.0]], sigma_h=0.5, sigma_ne=1.0))
+    assert s.cells_touched > 9
+    n, e = np.meshgrid(np.arange(24, 38) + 0.5, np.arange(24, 38) + 0.5)
+    h, v, c = grid.height_at(n, e)
+    known = c > 0
+    assert known.sum() == s.cells_touched
+    assert np.sum(0.25 / v[known]) == pytest.approx(1.0, rel=1e-5)
+    np.testing.assert_allclose(h[known], 3.0, atol=1e-6)
+    # The cell under the point holds the largest share.
+    assert v[6, 6] == v[known].min()
+
+
+def test_invalid_points_are_rejected_and_counted():
+    grid = TerrainGrid()
+    good = points(patch(0, 0, 2, 1.0), sigma_h=0.3)
+    pos = np.r_[good.positions_ned_m, np.zeros((6, 3))]
+    cov = np.r_[good.covariances, np.tile(np.eye(3) * 0.1, (6, 1, 1))]
+    pos[4] = [np.nan, 0, 0]
+    pos[5] = [0, np.inf, 0]
+    cov[6, 2, 2] = np.inf
+    cov[7, 0, 1] = 0.05  # not symmetric
+    cov[8] = np.diag([0.1, 0.1, -0.1])  # not PSD
+    cov[8, 0, 1] = cov[8, 1, 0] = 0.0
+    pos[9] = [2e6, 0, 0]  # beyond max_abs_coordinate_m
+    stats = grid.insert(TerrainPoints(0.0, pos, cov))
+    assert stats.rejected_invalid == 6 and stats.inserted == 4
+    assert grid.observed_area_m2() == 4.0
+    with pytest.raises(ValueError, match="positions_ned_m"):
+        grid.insert(TerrainPoints(0.0, np.zeros((3, 2)), np.zeros((3, 3, 3))))
+    with pytest.raises(ValueError, match="covariances"):
+        grid.insert(TerrainPoints(0.0, np.zeros((3, 3)), np.zeros((2, 3, 3))))
+    assert grid.insert(TerrainPoints.empty()) .inserted == 0
+
+
+def test_psd_covariance_with_zero_horizontal_variance_is_valid():
+    grid = TerrainGrid()
+    s = grid.insert(points([[0.5, 0.5, 1.0]], sigma_h=0.0, sigma_ne=0.0))
+    assert s.inserted == 1
+    # The height sigma is floored (no point is exact).
+    assert grid.height_at(0.5, 0.5)[1] == pytest.approx(grid.min_height_sigma_m**2, rel=1e-5)
+
+
+def test_from_config_uses_the_section():
+    cfg = TerrainConfig(cell_size_m=0.5, tile_cells=16, gate_sigma=4.0)
+    grid = TerrainGrid.from_config(cfg)
+    assert (grid.cell_size_m, grid.tile_cells, grid.gate_sigma) == (0.5, 16, 4.0)
+
+
+# ---------------------------------------------------------------------------------- queries
+
+
+def test_height_at_is_batched_and_handles_negative_tiles_and_unknown():
+    grid = TerrainGrid(tile_cells=8)
+    grid.insert(points([[-0.5, -0.5, 4.0], [-8.5, 3.5, 6.0], [100.5, 100.5, 1.0]], sigma_ne=0.01))
+    h, v, n = grid.height_at(np.array([[-0.5, -8.5], [0.5, np.nan]]), np.array([[-0.5, 3.5], [0.5, 0.0]]))
+    assert h.shape == (2, 2)
+    np.testing.assert_allclose(h[0], [4.0, 6.0], atol=1e-6)
+    assert np.isnan(h[1]).all() and np.isinf(v[1]).all() and (n[1] == 0).all()
+    assert grid.keys() == [(-2, 0), (-1, -1), (12, 12)]
+
+
+def brute_corridor(origin, d, length, w, extent=40):
+    cells = np.mgrid[-extent:extent, -extent:extent].reshape(2, -1).T
+    centre = cells + 0.5
+    rel = centre - origin
+    s = np.clip(rel @ d, 0, length)
+    dist = np.hypot(*(rel - s[:, None] * d).T)
+    return {tuple(c) for c in cells[dist <= w]}
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    on=st.floats(-5, 5), oe=st.floats(-5, 5), angle=st.floats(-np.pi, np.pi),
+    length=st.floats(0, 25), width=st.floats(0, 6),
+)
+def test_corridor_is_exactly_the_cells_within_the_miss_distance(on, oe, angle, length, width):
+    grid = TerrainGrid(tile_cells=8)
+    grid.insert(points(patch(-40, -40, 80, 0.0), sigma_ne=0.01))
+    d = np.array([np.cos(angle), np.sin(angle)])
+    c = grid.corridor((on, oe), d, length, width)
+    got = {(int(np.floor(n)), int(np.floor(e))) for n, e in zip(c.north_m, c.east_m)}
+    assert got == brute_corridor(np.array([on, oe]), d, length, width)
+    assert np.all(np.diff(c.along_m) >= 0)
+    rel = np.c_[c.north_m - on, c.east_m - oe]
+    np.testing.assert_allclose(c.along_m, rel @ d, atol=1e-9)
+    np.testing.assert_allclose(c.cross_m, np.abs(rel[:, 0] * d[1] - rel[:, 1] * d[0]), atol=1e-9)
+    assert c.known.all()
+
+
+def test_corridor_reports_layers_and_the_most_restrictive_cell():
+    grid = TerrainGrid()
+    grid.insert(points(np.r_[patch(0, -5, 30, 1.0)], sigma_ne=0.01))
+    grid.insert(points([[35.5, 1.5, 9.0], [33.5, 8.5, 30.0]], sigma_ne=0.01))  # 2nd is outside
+    c = grid.corridor((0.0, 0.0), (1.0, 0.0), 40.0, 3.0)
+    k = c.most_restrictive()
+    assert (c.north_m[k], c.east_m[k], c.height_m[k]) == (35.5, 1.5, 9.0)
+    assert c.along_m[k] == 35.5 and c.cross_m[k] == 1.5
+    assert (~c.known).sum() > 0  # the corridor runs past the mapped patch
+    assert np.isnan(c.height_m[~c.known]).all() and np.isinf(c.variance[~c.known]).all()
+    assert TerrainGrid().corridor((0, 0), (0, 1), 10, 2).most_restrictive() is None
+    with pytest.raises(ValueError):
+        grid.corridor((0, 0), (0, 0), 10, 2)
+    with pytest.raises(ValueError):
+        grid.corridor((0, np.nan), (0, 1), 10, 2)
+
+
+def test_ray_range_meets_the_first_known_terrain():
+    grid = TerrainGrid()
+    grid.insert(points(patch(-20, -20, 120, 2.0), sigma_ne=0.01))
+    grid.insert(points(patch(60, -5, 10, 22.0), sigma_ne=0.01), )  # a 20 m block at north 60..70
+    # The block is new evidence where ground was mapped: give it enough points to take over.
+    for _ in range(3):
+        grid.insert(points(patch(60, -5, 10, 22.0), sigma_ne=0.01))
+    origin = np.array([0.0, 0.3, -30.0])  # 30 m up
+    s2 = np.sqrt(0.5)
+    rays = np.array([
+        [0, 0, 1],  # straight down: 28 m to the ground at 2 m
+        [s2, 0, s2],  # 45 deg: ground at 28 m horizontal, before the block
+        [np.cos(0.15), 0, np.sin(0.15)],  # shallow: hits the block's face at north 60
+        [1, 0, -0.1],  # upward: nothing
+        [0, 1, 0.001],  # nearly level: runs off the map
+    ])
+    rays /= np.linalg.norm(rays, axis=1)[:, None]
+    r = grid.ray_range(origin, rays, 300.0)
+    assert r[0] == pytest.approx(28.0, abs=0.3)
+    assert r[1] == pytest.approx(28.0 * np.sqrt(2), abs=0.5)
+    assert r[2] == pytest.approx(60.0 / np.cos(0.15), abs=0.6)
+    assert np.isnan(r[3]) and np.isnan(r[4])
+    assert np.isnan(grid.ray_range(origin, rays[:1], 20.0)[0])  # beyond max range
+    assert np.isnan(TerrainGrid().ray_range(origin, rays, 100.0)).all()
+
+
+def test_pop_dirty_reports_changed_tiles_once():
+    grid = TerrainGrid(tile_cells=8)
+    grid.insert(points([[1.0, 1.0, 0.0], [20.0, -3.0, 0.0]], sigma_ne=0.01))
+    assert grid.pop_dirty() == [(0, 0), (2, -1)]
+    assert grid.pop_dirty() == []
+    grid.insert(points([[1.5, 1.5, 0.1]]))
+    assert grid.pop_dirty() == [(0, 0)]
+
+
+# ------------------------------------------------------------------------- memory and speed
+
+
+def cover(grid, n_range, e_range, step=1.0):
+    n, e = np.meshgrid(np.arange(*n_range, step) + 0.5, np.arange(*e_range, step) + 0.5, indexing="ij")
+    pts = np.c_[n.ravel(), e.ravel(), np.zeros(n.size)]
+    for k in range(0, len(pts), 50_000):
+        grid.insert(points(pts[k : k + 50_000], sigma_ne=0.01))
+
+
+def test_memory_grows_with_observed_area_not_bounding_box():
+    square, strip, diagonal = TerrainGrid(), TerrainGrid(), TerrainGrid()
+    cover(square, (0, 512), (0, 512))  # 0.262 km^2
+    cover(strip, (0, 8192), (0, 32))  # same area, 256 x longer
+    # Same area along a diagonal: a bounding box of 5.8 km x 5.8 km.
+    t = np.arange(0, 5793.0, 0.5)
+    n, e = np.meshgrid(t, np.arange(-22.6, 22.6, 0.5), indexing="ij")
+    pn, pe = (n + e) * np.sqrt(0.5), (n - e) * np.sqrt(0.5)
+    pts = np.c_[pn.ravel(), pe.ravel(), np.zeros(pn.size)]
+    for k in range(0, len(pts), 100_000):
+        diagonal.insert(points(pts[k : k + 100_000], sigma_ne=0.01))
+    for g in (square, strip, diagonal):
+        assert g.observed_area_m2() == pytest.approx(262_144, rel=0.02)
+    per_km2 = {name: g.memory_bytes() / (g.observed_area_m2() / 1e6) for name, g in
+               (("square", square), ("strip", strip), ("diagonal", diagonal))}
+    tiles_km2 = {name: len(g) / (g.observed_area_m2() / 1e6) for name, g in
+                 (("square", square), ("strip", strip), ("diagonal", diagonal))}
+    print("\nterrain memory per km^2 observed (1 m cells, 32-cell tiles; allocated, tiles in use): "
+          + ", ".join(f"{k} {v / 2**20:.1f} MiB, {tiles_km2[k] * 16 / 1024:.1f} MiB"
+                      for k, v in per_km2.items()))
+    # The same tiles for the same area whatever its shape; the pool grows by half its size at a time.
+    assert tiles_km2["strip"] == tiles_km2["square"]
+    assert 1 / 1.5 < per_km2["strip"] / per_km2["square"] < 1.5
+    # A 45 m wide diagonal band half-fills the tiles along its edges.
+    assert tiles_km2["diagonal"] < 2.0 * tiles_km2["square"]
+    assert per_km2["diagonal"] < 3.0 * per_km2["square"]
+    bbox_cells = 5793.0**2
+    assert diagonal.memory_bytes() < 0.02 * bbox_cells * 16
+
+
+def test_insert_and_query_speed(capsys):
+    """Figures for issue 7 (not a benchmark: generous bounds catch only pathologies)."""
+    rng = np.random.default_rng(3)
+    grid = TerrainGrid()
+    cover(grid, (-50, 150), (-50, 50))
+    n = 1000
+    pos = np.c_[rng.uniform(0, 100, n), rng.uniform(-20, 20, n), -rng.normal(0, 0.3, n)]
+    cov = np.tile(np.diag([0.3**2, 0.3**2, 0.3**2]), (n, 1, 1))
+    batch = TerrainPoints(0.0, pos, cov)
+    times = []
+    for _ in range(30):
+        t0 = time.perf_counter()
+        grid.insert(batch)
+        times.append(time.perf_counter() - t0)
+    q = []
+    for _ in range(30):
+        t0 = time.perf_counter()
+        grid.corridor((0.0, 0.0), (0.8, 0.6), 100.0, 5.7)
+        q.append(time.perf_counter() - t0)
+    ins, cor = np.median(times) * 1e3, np.median(q) * 1e3
+    with capsys.disabled():
+        print(f"\ninsert 1000 points: median {ins:.2f} ms; corridor 100 m x 11.4 m: median {cor:.3f} ms")
+    assert ins < 20 and cor < 10
