@@ -118,15 +118,19 @@ class AvoidanceCommand:
     unknown_cells_ahead: int
 
 
-def fill_unknown(corridor: Corridor, fill_m: float, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Heights for the corridor with unmapped cells assumed as high as the highest mapped cell
-    within ``fill_m`` along track (a gap between two points of a roof is roof, not ground at zero).
-    Returns (height (K,), NaN where nothing mapped is near; bool (K,) cells that were filled)."""
-    h = corridor.height_m.copy()
-    unknown = ~corridor.known
-    if not unknown.any() or not (~unknown).any():
-        return h, np.zeros(len(h), dtype=bool)
-    bins = np.floor((corridor.along_m - corridor.along_m[0]) / cell_m).astype(np.int64)
+def fill_unknown(along_m: np.ndarray, height_m: np.ndarray, fill_m: float, cell_m: float, hover: bool) -> np.ndarray:
+    """Heights with unmapped cells (NaN) assumed as high as the highest mapped cell within
+    ``fill_m`` along track (a gap between two points of a roof is roof, not ground at zero); at
+    hover, as high as the highest mapped cell around. NaN stays where nothing mapped is near.
+    along_m, height_m: (K,) sorted along track."""
+    h = height_m.copy()
+    unknown = np.isnan(h)
+    if not unknown.any() or unknown.all():
+        return h
+    if hover:
+        h[unknown] = np.max(h[~unknown])
+        return h
+    bins = np.floor((along_m - along_m[0]) / cell_m).astype(np.int64)
     n_bins = int(bins[-1]) + 1
     peak = np.full(n_bins, -np.inf)
     np.maximum.at(peak, bins[~unknown], h[~unknown])
@@ -136,10 +140,8 @@ def fill_unknown(corridor: Corridor, fill_m: float, cell_m: float) -> tuple[np.n
     for k in range(2 * reach + 1):
         np.maximum(window, padded[k : k + n_bins], out=window)
     stand_in = window[bins[unknown]]
-    filled = np.zeros(len(h), dtype=bool)
-    filled[unknown] = np.isfinite(stand_in)
     h[unknown] = np.where(np.isfinite(stand_in), stand_in, np.nan)
-    return h, filled
+    return h
 
 
 class PullUpLaw:
@@ -167,20 +169,30 @@ class PullUpLaw:
         # The zone of a cell: within the miss distance of any point of the cell (half diagonal).
         radius = cfg.miss_distance_m + grid.cell_size_m * math.sqrt(0.5)
         speed = float(np.hypot(v[0], v[1]))
-        if speed < max(cfg.hover_speed_mps, 1e-9):
-            corr = grid.corridor(p[:2], (1.0, 0.0), 0.0, radius)
-            speed_used = 0.0
+        hover = speed < max(cfg.hover_speed_mps, 1e-9)
+        fill = cfg.unknown_fill_m
+        # The corridor starts `fill` behind the vehicle (and the hover disc is `fill` wider) so
+        # that mapped cells just outside the zone can stand in for unmapped ones inside it.
+        if hover:
+            direction, speed_used = np.array([1.0, 0.0]), 0.0
+            corr = grid.corridor(p[:2], direction, 0.0, radius + fill)
+            along = corr.along_m
+            zone = np.hypot(corr.north_m - p[0], corr.east_m - p[1]) <= radius
         else:
-            corr = grid.corridor(p[:2], v[:2] / speed, cfg.lookahead_m, radius)
-            speed_used = speed
-        heights, _filled = fill_unknown(corr, cfg.unknown_fill_m, grid.cell_size_m)
+            direction, speed_used = v[:2] / speed, speed
+            corr = grid.corridor(p[:2] - fill * direction, direction, cfg.lookahead_m + fill, radius)
+            along = corr.along_m - fill
+            zone = (along >= 0.0) | (along * along + corr.cross_m * corr.cross_m <= radius * radius)
+        heights = fill_unknown(along, corr.height_m, fill, grid.cell_size_m, hover)[zone]
+        along, cross = along[zone], corr.cross_m[zone]
+        north, east = corr.north_m[zone], corr.east_m[zone]
         considered = np.isfinite(heights)
         unknown_left = int(len(heights) - np.count_nonzero(considered))
 
         best_w, idx, dt_i = -math.inf, None, math.nan
         if considered.any():
             sel = np.flatnonzero(considered)
-            dt = time_to_go(corr.along_m[sel], corr.cross_m[sel], radius, speed_used)
+            dt = time_to_go(along[sel], cross[sel], radius, speed_used)
             w = minimum_climb_rate(heights[sel] + cfg.clearance_m - alt, dt, a, cfg.max_climb_mps)
             k = int(np.argmax(w))
             best_w, idx, dt_i = float(w[k]), int(sel[k]), float(dt[k])
@@ -192,7 +204,7 @@ class PullUpLaw:
         return AvoidanceCommand(
             climb_rate_mps=cmd,
             nominal_climb_mps=w_nom,
-            limiting_cell_ne=(float(corr.north_m[idx]), float(corr.east_m[idx])),
+            limiting_cell_ne=(float(north[idx]), float(east[idx])),
             limiting_height_m=h_i,
             time_to_go_s=dt_i,
             required_alt_m=float(height_restriction(np.array(h_i), cfg.clearance_m, a, np.array(dt_i))),

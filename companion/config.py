@@ -246,9 +246,9 @@ class SimConfig:
     nav_vel_sigma_mps: float = _f(0.1, "m/s", 0.0, 10.0, "injected navigation error: velocity sigma per axis")
     nav_tilt_sigma_deg: float = _f(0.5, "deg", 0.0, 30.0, "injected navigation error: roll/pitch sigma")
     nav_yaw_sigma_deg: float = _f(2.0, "deg", 0.0, 90.0, "injected navigation error: yaw sigma")
-    nav_pos_tau_s: float = _f(10.0, "s", 0.01, 3600.0, "correlation time of the position error")
-    nav_vel_tau_s: float = _f(2.0, "s", 0.01, 3600.0, "correlation time of the velocity error")
-    nav_att_tau_s: float = _f(5.0, "s", 0.01, 3600.0, "correlation time of the attitude error")
+    nav_pos_tau_s: float = _f(30.0, "s", 0.01, 3600.0, "correlation time of the position error (GPS-like: slow)")
+    nav_vel_tau_s: float = _f(5.0, "s", 0.01, 3600.0, "correlation time of the velocity error")
+    nav_att_tau_s: float = _f(10.0, "s", 0.01, 3600.0, "correlation time of the attitude error")
     gps_noise_m: float = _f(0.2, "m", 0.0, 100.0, "white noise of the simulated GPS fix about the navigation estimate")
     gps_vel_noise_mps: float = _f(0.05, "m/s", 0.0, 10.0, "white noise of the simulated GPS velocity")
 

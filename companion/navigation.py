@@ -186,10 +186,12 @@ def covariance_problem(P: np.ndarray, rel_tol: float = 1e-5) -> str | None:
 def reported_covariance(values: Any, n: int) -> tuple[np.ndarray | None, str | None]:
     """A MAVLink upper-triangle covariance -> (matrix, problem).
 
-    ``(None, None)`` when unknown (NaN first element, MAVLink's convention). Off-diagonal NaN is read
-    as an unknown correlation, i.e. 0: PX4's ODOMETRY stream sets only the diagonal and leaves the
-    rest NaN (PX4 src/modules/mavlink/streams/ODOMETRY.hpp). A NaN or infinite variance on the
-    diagonal, a negative variance or a non-PSD matrix is a problem.
+    ``(None, None)`` when unknown (NaN first element, MAVLink's convention). A NaN variance marks
+    that state unknown (it stays NaN on the diagonal; :func:`covariance_block` then declines blocks
+    that contain it) and a NaN off-diagonal is an unknown correlation, read as 0: PX4's ODOMETRY
+    stream sets only the variances it has (position, orientation; vx, vy, vz but not the angular
+    rates) and leaves everything else NaN (PX4 src/modules/mavlink/streams/ODOMETRY.hpp). An infinite
+    element or a negative variance is a problem.
     """
     if values is None:
         return None, None
@@ -200,16 +202,26 @@ def reported_covariance(values: Any, n: int) -> tuple[np.ndarray | None, str | N
         P = upper_triangle_to_matrix(values, n)
     except ValueError:
         return None, "covariance has the wrong length"
-    d = np.diag(P).copy()
-    if not np.all(np.isfinite(d)):
-        return None, "non-finite variance"
-    off = ~np.eye(n, dtype=bool)
-    nan_off = np.isnan(P) & off
     if np.any(np.isinf(P)):
         return None, "non-finite covariance"
-    P[nan_off] = 0.0
-    problem = covariance_problem(P)
-    return (None, problem) if problem else (P, None)
+    d = np.diag(P).copy()
+    if np.any(d < 0):
+        return None, "negative variance"
+    P[np.isnan(P)] = 0.0
+    P[np.diag_indices(n)] = d  # unknown variances stay NaN
+    return P, None
+
+
+def covariance_block(P: np.ndarray, states: slice) -> tuple[np.ndarray | None, str | None]:
+    """The sub-covariance over ``states`` of a :func:`reported_covariance` matrix.
+
+    ``(None, None)`` when one of its variances is unknown, ``(None, problem)`` when it is not PSD.
+    """
+    B = P[states, states]
+    if np.any(np.isnan(np.diag(B))):
+        return None, None
+    problem = covariance_problem(B)
+    return (None, problem) if problem else (B.copy(), None)
 
 
 def apply_floors(P: np.ndarray, floor_sigmas: np.ndarray) -> np.ndarray:
@@ -332,8 +344,18 @@ def _get(msg: Any, name: str, default: Any = None) -> Any:
     return getattr(msg, name, default)
 
 
+_MISSING = object()
+
+
 def _floats(msg: Any, *names: str) -> np.ndarray:
-    return np.array([float(_get(msg, n, math.nan)) for n in names])
+    """Named float fields; a missing field is a malformed message (ValueError), not a NaN."""
+    values = []
+    for n in names:
+        v = _get(msg, n, _MISSING)
+        if v is _MISSING:
+            raise ValueError(f"field {n!r} missing")
+        values.append(float(v))
+    return np.array(values)
 
 
 # --------------------------------------------------------------------------------------------
@@ -510,15 +532,27 @@ class NavAssembler:
         if problem:
             self._reject(kind, f"pose {problem}")
         elif pose is not None:
-            E = euler_rate_jacobian_ned(*quat_to_euler(q))
-            ev.pos = pose[:3, :3]
-            ev.att = E @ pose[3:, 3:] @ E.T
-            ev.pos_att = pose[:3, 3:] @ E.T
+            pos_cov, p_problem = covariance_block(pose, slice(0, 3))
+            rpy_cov, a_problem = covariance_block(pose, slice(3, 6))
+            if pos_cov is not None and rpy_cov is not None:
+                _, p_problem = covariance_block(pose, slice(0, 6))  # the joint matrix must be PSD too
+                a_problem = p_problem
+            if p_problem or a_problem:
+                self._reject(kind, f"pose {p_problem or a_problem}")
+            else:
+                E = euler_rate_jacobian_ned(*quat_to_euler(q))
+                ev.pos = pos_cov
+                ev.att = None if rpy_cov is None else E @ rpy_cov @ E.T
+                if pos_cov is not None and rpy_cov is not None:
+                    ev.pos_att = pose[:3, 3:] @ E.T
         twist, problem = reported_covariance(_get(msg, "velocity_covariance"), 6)
+        vel_cov = None
+        if twist is not None:
+            vel_cov, problem = covariance_block(twist, slice(0, 3))  # the angular-rate part is not used
         if problem:
             self._reject(kind, f"velocity {problem}")
-        elif twist is not None:
-            ev.vel = twist[:3, :3] if R is None else R @ twist[:3, :3] @ R.T
+        elif vel_cov is not None:
+            ev.vel = vel_cov if R is None else R @ vel_cov @ R.T
         self._evidence[kind] = ev
 
         t = self._companion_time(self._time_usec_to_boot_s(_get(msg, "time_usec", 0)), t_rx)
@@ -530,15 +564,18 @@ class NavAssembler:
 
     def _on_local_position_ned_cov(self, msg: Any, t_rx: float) -> None:
         kind = "LOCAL_POSITION_NED_COV"
+        self._evidence.pop(kind, None)
         P, problem = reported_covariance(_get(msg, "covariance"), 9)
+        if problem is None and P is not None:
+            pos, problem = covariance_block(P, slice(0, 3))
+            vel, problem2 = covariance_block(P, slice(3, 6))
+            problem = problem or problem2
+            if problem is None and pos is not None and vel is not None:
+                _, problem = covariance_block(P, slice(0, 6))
+            if problem is None and pos is not None and vel is not None:  # the model needs both blocks
+                self._evidence[kind] = _Evidence(t_rx, pos=pos, vel=vel, pos_vel=P[:3, 3:6].copy())
         if problem:
             self._reject(kind, problem)
-            self._evidence.pop(kind, None)
-            return None
-        if P is None:
-            self._evidence.pop(kind, None)
-            return None
-        self._evidence[kind] = _Evidence(t_rx, pos=P[:3, :3], vel=P[3:6, 3:6], pos_vel=P[:3, 3:6])
         return None
 
     def _on_attitude_quaternion_cov(self, msg: Any, t_rx: float) -> None:
@@ -858,6 +895,7 @@ __all__ = [
     "RejectionCounter",
     "TruthPose",
     "apply_floors",
+    "covariance_block",
     "covariance_problem",
     "euler_covariance_to_rotvec",
     "euler_rate_jacobian_ned",

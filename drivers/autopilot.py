@@ -314,7 +314,10 @@ class TcpTransport(Transport):
         loop = asyncio.get_running_loop()
         e = self.endpoint
         self._proto = _StreamProtocol(self.on_bytes, self._closed)
-        await asyncio.wait_for(loop.create_connection(lambda: self._proto, e.host, e.port), self.connect_timeout_s)
+        # asyncio.timeout, not wait_for: in 3.11 wait_for can swallow a cancellation that races a
+        # completion, and a swallowed cancel would keep the link alive through shutdown.
+        async with asyncio.timeout(self.connect_timeout_s):
+            await loop.create_connection(lambda: self._proto, e.host, e.port)
 
     def _closed(self, exc: Exception | None) -> None:
         if not self._closing:
@@ -460,18 +463,24 @@ def make_transport(endpoint: Endpoint, on_bytes: OnBytes, on_lost: OnLost, conne
 
 
 class RateMeter:
-    """Arrival rate per message type over a sliding window (bounded memory)."""
+    """Arrival rate per message type over a sliding window (bounded memory).
+
+    rate = arrivals in the last ``window_s`` / min(window_s, time since the type was first seen), so a
+    burst (ten COMMAND_ACKs in 50 ms) reads as its average, and a stream silent for a window reads 0.
+    """
 
     def __init__(self, window_s: float = 2.0, maxlen: int = 1024) -> None:
         self.window_s = window_s
         self.maxlen = maxlen
         self._t: dict[str, deque[float]] = {}
+        self._first: dict[str, float] = {}
         self.counts: dict[str, int] = {}
 
     def tick(self, kind: str, now: float) -> None:
         q = self._t.get(kind)
         if q is None:
             q = self._t[kind] = deque(maxlen=self.maxlen)
+            self._first[kind] = now
         q.append(now)
         self.counts[kind] = self.counts.get(kind, 0) + 1
 
@@ -481,12 +490,11 @@ class RateMeter:
 
     def rate(self, kind: str, now: float) -> float:
         q = self._t.get(kind)
-        if not q or now - q[-1] > self.window_s:
+        if not q:
             return 0.0
-        recent = [t for t in q if t >= now - self.window_s]
-        if len(recent) < 2:
-            return 0.0
-        return (len(recent) - 1) / max(recent[-1] - recent[0], 1e-9)
+        n = sum(1 for t in q if t > now - self.window_s)
+        span = min(self.window_s, now - self._first[kind])
+        return n / span if span > 0 else 0.0
 
     def rates(self, now: float) -> dict[str, float]:
         return {k: round(self.rate(k, now), 2) for k in sorted(self._t)}
@@ -729,7 +737,8 @@ class AutopilotLink:
     async def wait_connected(self, timeout_s: float) -> bool:
         """Wait (clock seconds) until an autopilot heartbeat is being received."""
         with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(self._connected_event.wait(), self.clock.wall_seconds(timeout_s))
+            async with asyncio.timeout(self.clock.wall_seconds(timeout_s)):
+                await self._connected_event.wait()
         return self.connected
 
     # ------------------------------------------------------------------------------------------
@@ -952,7 +961,8 @@ class AutopilotLink:
                     p = [float(x) for x in params]
                     self._send(self._mav.command_long_encode(self._target[0], self._target[1], command, confirmation, *p))
                     with contextlib.suppress(TimeoutError):
-                        return await asyncio.wait_for(future, self.clock.wall_seconds(lc.command_timeout_s))
+                        async with asyncio.timeout(self.clock.wall_seconds(lc.command_timeout_s)):
+                            return await future
                 finally:
                     self._pending = None
         return "NO_ANSWER"
@@ -1414,7 +1424,7 @@ def statustext_chunks(text: str) -> list[bytes]:
     data = text.encode("utf-8")
     limit = STATUSTEXT_CHUNK * STATUSTEXT_MAX_CHUNKS
     if len(data) > limit:
-        cut = limit - 3
+        cut = limit - 4  # 249 bytes with the ellipsis: the last chunk is not full, so no terminator chunk
         while cut > 0 and (data[cut] & 0xC0) == 0x80:
             cut -= 1
         data = data[:cut] + b"..."

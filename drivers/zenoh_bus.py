@@ -499,6 +499,8 @@ class ZenohBus:
 
     def publish_avoidance(self, body: Mapping[str, Any]) -> bytes:
         """Publish ``companion.avoidance/1``; ``body`` must carry :data:`AVOIDANCE_REQUIRED`."""
+        if not isinstance(body, Mapping):
+            raise TypeError(f"{AVOIDANCE_SCHEMA}: body must be a mapping, got {type(body).__name__}")
         missing = [k for k in AVOIDANCE_REQUIRED if k not in body]
         if missing:
             raise ValueError(f"{AVOIDANCE_SCHEMA}: missing field(s) {', '.join(missing)}")
@@ -518,7 +520,9 @@ class ZenohBus:
                 self.publish_status(provider())
             except Exception:  # noqa: BLE001 - see docstring
                 self._count("status_provider_errors")
-                log.exception("zenoh: status provider failed")
+                failures = self._n["status_provider_errors"]
+                if failures == 1 or failures % 60 == 0:  # the first, then once a minute at 1 Hz
+                    log.exception("zenoh: status provider failed (%d times)", failures)
             due += period
             now = loop.time()
             if due < now:
@@ -535,7 +539,7 @@ class ZenohBus:
 
     def _bad_query(self, query: zenoh.Query, why: str) -> None:
         self._count("bad_queries")
-        log.info("zenoh: bad query on %s: %s", query.key_expr, why)
+        log.debug("zenoh: bad query on %s: %s", query.key_expr, why)  # counted; a flood must not flood the log
         query.reply_err(f"companion: {why}".encode(), encoding="text/plain")
 
     def _on_query(self, query: zenoh.Query) -> None:

@@ -35,6 +35,8 @@ BLOCK_MIN = np.array([45.0, -6.0, -12.0])  # NED box: x 45..53 north, y -6..6 ea
 BLOCK_MAX = np.array([53.0, 6.0, 0.0])
 N_RUNS = 16
 MIN_SEEN_FRAMES = 15  # a world point counts for "frames to map" if it was measured over this many frames
+MIN_LIFETIME = 15  # a feature counts for "frames to converge" if it stayed this many frames in the database
+CURVE_AGES = (3, 5, 8, 12)  # ages (frames since initialisation) at which depth errors are sampled
 GROUND_SPACING_M = 4.0
 
 
@@ -135,6 +137,8 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
     first_seen: dict[int, int] = {}
     last_seen: dict[int, int] = {}
     mapped: dict[int, int] = {}
+    died: dict[int, int] = {}
+    rel_err_at_age: dict[int, dict[int, float]] = {age: {} for age in CURVE_AGES}
     n_matched = n_wrong = 0
     misassociated: set[int] = set()
     for k, (nav, z, idx, p_c_true) in enumerate(frames):
@@ -143,6 +147,8 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
             last_seen[i] = k
         step = mapper.step_measurements(nav, z)
         assert step.rejected_reason == ""
+        for fid in step.removed_ids.tolist():
+            died[fid] = k
         for fid, m in zip(step.matched_ids.tolist(), step.matched_measurements.tolist()):
             n_matched += 1
             if truth_of[fid] != idx[m]:
@@ -157,6 +163,12 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
             final[fid] = (X, P)
             if fid not in misassociated:
                 mapped.setdefault(truth_of[fid], k)
+        snap = mapper.features()
+        for fid, X in zip(snap.ids.tolist(), snap.positions_ned_m):
+            age = k - born[fid]
+            if age in rel_err_at_age:
+                truth_range = np.linalg.norm(world[truth_of[fid]] - origin[fid])
+                rel_err_at_age[age][fid] = abs(np.linalg.norm(X - origin[fid]) - truth_range) / truth_range
     snap = mapper.features()
     for fid, X, P, conv in zip(snap.ids.tolist(), snap.positions_ned_m, snap.covariances, snap.converged):
         if conv:
@@ -174,8 +186,12 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
             nees[n] = err[n] @ np.linalg.solve(P, err[n])
             depth_err[n] = abs(np.linalg.norm(X - origin[f]) - np.linalg.norm(truth - origin[f]))
     points = [i for i in first_seen if last_seen[i] - first_seen[i] >= MIN_SEEN_FRAMES]
-    return {
+    curves = {
+        f"rel_err_age{age}": np.array([rel_err_at_age[age].get(f, np.nan) for f in ids]) for age in CURVE_AGES
+    }
+    return curves | {
         "converged": np.array([f in final for f in ids], dtype=bool),
+        "lifetime": np.array([died.get(f, len(frames)) - born[f] for f in ids]),
         "frames_to_converge": np.array([first_converged[f] - born[f] if f in first_converged else np.inf for f in ids]),
         "on_block": np.array([world[truth_of[f]][2] < -0.5 for f in ids], dtype=bool),
         "misassociated": np.array([f in misassociated for f in ids], dtype=bool),
@@ -218,19 +234,26 @@ def monte_carlo() -> dict[str, dict[str, np.ndarray]]:
 
 
 def figures(r: dict[str, np.ndarray]) -> dict[str, float]:
+    """Summary figures of one parameterisation's records (see :func:`play`)."""
     good = r["converged"] & ~r["misassociated"]
-    f2c = r["frames_to_converge"][r["converged"]]
+    lived = r["lifetime"] >= MIN_LIFETIME
+    f2c = r["frames_to_converge"]
     out = {
         "features": len(r["converged"]),
         "converged": int(r["converged"].sum()),
-        "f2c_median": float(np.median(f2c)),
-        "f2c_block_median": float(np.median(r["frames_to_converge"][r["converged"] & r["on_block"]])),
-        "f2m_median": float(np.median(r["frames_to_map"])),
-        "f2m_ground_median": float(np.median(r["frames_to_map"][~r["point_on_block"]])),
-        "f2m_block_median": float(np.median(r["frames_to_map"][r["point_on_block"]])),
+        # Frames from initialisation to convergence of features that stayed MIN_LIFETIME frames
+        # in the database, never converged = inf (a median can then be inf).
+        "f2c_all": float(np.median(f2c[lived])),
+        "f2c_ground": float(np.median(f2c[lived & ~r["on_block"]])),
+        "f2c_block": float(np.median(f2c[lived & r["on_block"]])),
+        "converged_lived_block": float(np.mean(np.isfinite(f2c[lived & r["on_block"]]))),
+        "converged_lived_ground": float(np.mean(np.isfinite(f2c[lived & ~r["on_block"]]))),
+        "f2m_ground": float(np.median(r["frames_to_map"][~r["point_on_block"]])),
+        "f2m_block": float(np.median(r["frames_to_map"][r["point_on_block"]])),
         "mapped_block": float(np.mean(np.isfinite(r["frames_to_map"][r["point_on_block"]]))),
         "mapped_ground": float(np.mean(np.isfinite(r["frames_to_map"][~r["point_on_block"]]))),
         "depth_err_median": float(np.median(r["depth_err"][good])),
+        "depth_err_ground_median": float(np.median(r["depth_err"][good & ~r["on_block"]])),
         "depth_err_block_median": float(np.median(r["depth_err"][good & r["on_block"]])),
         "nees_mean": float(np.mean(r["nees"][good])),
         "nees_median": float(np.median(r["nees"][good])),
@@ -239,8 +262,15 @@ def figures(r: dict[str, np.ndarray]) -> dict[str, float]:
         "nees_one_mean": float(np.mean(r["nees_one"])),
         "n_one": len(r["nees_one"]),
         "misassociated_converged": float(np.mean(r["misassociated"][r["converged"]])),
+        "misassociated_converged_ground": float(np.mean(r["misassociated"][r["converged"] & ~r["on_block"]])),
+        "misassociated_converged_block": float(np.mean(r["misassociated"][r["converged"] & r["on_block"]])),
         "wrong_updates": float(r["n_wrong"].sum() / max(r["n_matched"].sum(), 1)),
     }
+    for age in CURVE_AGES:
+        e = r[f"rel_err_age{age}"]
+        for where, mask in (("ground", ~r["on_block"]), ("block", r["on_block"])):
+            sel = e[mask & ~r["misassociated"] & np.isfinite(e)]
+            out[f"rel_err_{where}_age{age}"] = float(np.median(sel)) if len(sel) else float("nan")
     return out
 
 
@@ -249,26 +279,31 @@ def report() -> str:
     lines = [
         f"mapper feature-level simulation: {N_RUNS} runs x {N_FRAMES} frames at {RATE_HZ:g} Hz, {SPEED_MPS:g} m/s, "
         f"{ALTITUDE_M:g} m AGL, 12 m block; nav sigma {SIGMA_POS_M} m / {np.degrees(SIGMA_ATT_RAD):.2f} deg "
-        f"(white, = P_x), pixel sigma {PIXEL_SIGMA} px"
+        f"(white, = P_x), pixel sigma {PIXEL_SIGMA} px; flat-ground depth prior"
     ]
     for name in ("inverse_depth", "cartesian"):
         f = figures(res[name])
         lo, hi = chi2_mean_bounds(f["n_good"], 3)
         lo1, hi1 = chi2_mean_bounds(f["n_one"], 3)
+        curve = lambda where: " ".join(f"{age}:{100 * f[f'rel_err_{where}_age{age}']:.0f}%" for age in CURVE_AGES)  # noqa: E731
         lines += [
             f"[{name}]",
-            f"  features converged {f['converged']}/{f['features']}; frames to converge (median): all {f['f2c_median']:.0f}, "
-            f"block {f['f2c_block_median']:.0f}",
-            f"  frames from first sight to mapped (median per point): all {f['f2m_median']:.0f}, ground "
-            f"{f['f2m_ground_median']:.0f}, block {f['f2m_block_median']:.0f}; points mapped: ground "
-            f"{100 * f['mapped_ground']:.0f}%, block {100 * f['mapped_block']:.0f}%",
-            f"  final depth error (median |m|): all {f['depth_err_median']:.2f}, block {f['depth_err_block_median']:.2f}",
-            f"  NEES (3 dof) of correctly associated converged points: mean {f['nees_mean']:.2f}, median "
+            f"  features initialised {f['features']}, converged {f['converged']}",
+            f"  frames to converge (median, features kept >= {MIN_LIFETIME} frames, never = inf): all {f['f2c_all']:.0f}, "
+            f"ground {f['f2c_ground']:.0f}, block {f['f2c_block']:.0f}; converged: ground "
+            f"{100 * f['converged_lived_ground']:.0f}%, block {100 * f['converged_lived_block']:.0f}%",
+            f"  frames from first sight to on the map (median per point): ground {f['f2m_ground']:.0f}, block "
+            f"{f['f2m_block']:.0f}; points mapped: ground {100 * f['mapped_ground']:.0f}%, block {100 * f['mapped_block']:.0f}%",
+            f"  median |depth error| / depth by feature age (frames): ground {curve('ground')}; block {curve('block')}",
+            f"  final depth error (median, m): all {f['depth_err_median']:.2f}, ground {f['depth_err_ground_median']:.2f}, "
+            f"block {f['depth_err_block_median']:.2f}",
+            f"  NEES (3 dof), correctly associated converged points: mean {f['nees_mean']:.2f}, median "
             f"{f['nees_median']:.2f} (n={f['n_good']}; 95% bounds if independent {lo:.2f}..{hi:.2f}); one per run "
-            f"{f['nees_one_mean']:.2f} (n={f['n_one']}, bounds {lo1:.2f}..{hi1:.2f}); all converged incl. "
-            f"misassociated {f['nees_all_mean']:.1f}",
-            f"  misassociated: {100 * f['wrong_updates']:.2f}% of updates, {100 * f['misassociated_converged']:.1f}% of "
-            f"converged features",
+            f"{f['nees_one_mean']:.2f} (n={f['n_one']}, bounds {lo1:.2f}..{hi1:.2f}); incl. misassociated "
+            f"{f['nees_all_mean']:.1f}",
+            f"  misassociated: {100 * f['wrong_updates']:.2f}% of updates; converged features ever misassociated: "
+            f"{100 * f['misassociated_converged']:.1f}% (ground {100 * f['misassociated_converged_ground']:.1f}%, "
+            f"block {100 * f['misassociated_converged_block']:.1f}%)",
         ]
     return "\n".join(lines)
 
@@ -282,23 +317,36 @@ def test_inverse_depth_maps_the_scene_accurately_and_consistently():
     print("\n" + report())
     f = figures(monte_carlo()["inverse_depth"])
     assert f["mapped_ground"] > 0.9
-    assert f["mapped_block"] > 0.6
-    assert f["depth_err_median"] < 0.5
+    assert f["mapped_block"] > 0.75
+    assert f["depth_err_ground_median"] < 0.5
     assert f["depth_err_block_median"] < 0.5
-    assert f["misassociated_converged"] < 0.05
+    # Mahalanobis matching alone: rare errors on the ground; more on the block, whose points start
+    # 4-5x too far (flat-ground prior) until the terrain map supplies a better prior.
+    assert f["misassociated_converged_ground"] < 0.03
+    assert f["misassociated_converged_block"] < 0.25
+    # Consistency: one independent sample per run inside the chi-square bounds for the mean ...
     lo, hi = chi2_mean_bounds(f["n_one"], 3)
     assert lo <= f["nees_one_mean"] <= hi
-    # Over all correctly associated points (correlated through the shared navigation errors, so
-    # the chi-square bounds above are too tight for them) the EKF may be mildly overconfident.
-    assert 2.5 < f["nees_mean"] < 4.0
+    # ... and the mean over every correctly associated converged point near 3. These points share
+    # each frame's navigation error, so they are not independent and the chi-square bounds for n
+    # independent points (printed) are too narrow for them; a 3.0 +- 25% band is used instead.
+    assert 2.25 < f["nees_mean"] < 3.75
 
 
-def test_inverse_depth_maps_the_obstacle_in_fewer_frames_than_cartesian():
+def test_inverse_depth_converges_faster_than_cartesian_where_the_prior_is_wrong():
+    """The paper's comparison (figs. 2 vs 3) with an honest Cartesian filter (no inflated noise).
+
+    Block points start 4-5x too far (flat-ground prior): the inverse-depth prior covers them, the
+    Cartesian Gaussian in depth does not, so its features there converge later or not at all.
+    On the ground, where the prior is right, the two tie (printed; asserted within one frame).
+    """
     res = monte_carlo()
     inv, cart = figures(res["inverse_depth"]), figures(res["cartesian"])
-    assert inv["f2m_block_median"] < cart["f2m_block_median"]
-    assert inv["mapped_block"] > cart["mapped_block"]
-    assert inv["f2m_median"] <= cart["f2m_median"]
+    assert inv["f2c_block"] < cart["f2c_block"]
+    assert inv["converged_lived_block"] > cart["converged_lived_block"]
+    assert inv["rel_err_block_age5"] < 0.25 < cart["rel_err_block_age5"]
+    assert inv["f2c_ground"] <= cart["f2c_ground"] + 1
+    assert inv["nees_mean"] < cart["nees_mean"]
 
 
 if __name__ == "__main__":

@@ -146,6 +146,8 @@ def test_raycast_rejects_bad_rays(world):
         world.raycast(np.zeros(3), np.zeros((2, 3)))
     with pytest.raises(ValueError):
         world.raycast(np.zeros(3), np.array([[np.nan, 0, 1]]))
+    with pytest.raises(ValueError):
+        world.raycast(np.zeros((2, 3)), np.ones((3, 3)))
 
 
 @given(

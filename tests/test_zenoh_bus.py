@@ -408,7 +408,7 @@ def test_garbage_queries_are_answered_with_errors_and_counted(linked):
 # ------------------------------------------------------------------------------------------
 
 
-def test_peer_with_a_dead_connect_endpoint_opens_and_delivers_once_it_appears():
+def test_peer_keeps_running_through_an_absent_then_lost_listener():
     ep = f"tcp/127.0.0.1:{free_port()}"  # nobody listens here yet
     with ZenohBus(bus_config(connect=(ep,))) as bus:
         assert bus.connected
@@ -424,6 +424,16 @@ def test_peer_with_a_dead_connect_endpoint_opens_and_delivers_once_it_appears():
                   f"(retry {bus.cfg.reconnect_min_s}-{bus.cfg.reconnect_max_s} s)")
             _, key, payload, _ = inbox.get(timeout=1)
             assert key == "companion/v1/terrain/tile/4/4" and payload == tile_bytes(4, 4)
+        finally:
+            ground.close()
+        # The link drops (the ground station goes away) and comes back: the bus reconnects.
+        bus.publish_tile(5, 5, tile_bytes(5, 5))  # nobody there: must not raise
+        ground = raw_session(listen=[ep])
+        try:
+            inbox = Inbox(ground, "companion/v1/terrain/tile/*/*")
+            assert wait_for(lambda: (bus.publish_tile(5, 5, tile_bytes(5, 5)), not inbox.q.empty())[1],
+                            timeout=8.0, step=0.05)
+            assert bus.stats().publish_errors == 0
         finally:
             ground.close()
 

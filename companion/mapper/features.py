@@ -29,7 +29,7 @@ import numpy as np
 
 from companion.config import MapperConfig
 
-__all__ = ["HarrisDetector", "detect_corners", "select_features", "suppress_within", "refine_corners"]
+__all__ = ["HarrisDetector", "detect_corners", "select_features", "suppress_within", "refine_corners", "strongest"]
 
 SOBEL_APERTURE = 3  # cornerHarris' derivative kernel; the response at a pixel sees block//2 + 1 around it
 # cornerSubPix: at most 5 iterations or a step below 0.03 px (measured: more buys < 0.005 px)
@@ -177,12 +177,13 @@ def _close_pairs(xy: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
     """All pairs ``(i, j)``, ``i < j``, of points ``xy (K, 2)`` closer than ``d``.
 
     With the points sorted by ``x``, the partners of a point lie in one contiguous run
-    (``|dx| < d``) found by ``searchsorted``; only those runs are tested, not all ``K^2`` pairs."""
+    (``|dx| <= d``) found by ``searchsorted``; only those runs are tested, not all ``K^2`` pairs."""
     x, y = xy[:, 0], xy[:, 1]
     order = np.argsort(x, kind="stable")
     xs = x[order]
-    start = np.searchsorted(xs, x - d, side="right")
-    count = np.searchsorted(xs, x + d, side="left") - start
+    # inclusive run |dx| <= d (never empty: it holds the point itself); the exact test follows
+    start = np.searchsorted(xs, x - d, side="left")
+    count = np.searchsorted(xs, x + d, side="right") - start
     src = np.repeat(np.arange(len(xy)), count)
     first = np.cumsum(count) - count
     dst = order[np.arange(src.size) - np.repeat(first - start, count)]
@@ -242,21 +243,39 @@ def _bin_rank(xy: np.ndarray, width: int, height: int, bins_x: int, bins_y: int)
     return rank
 
 
-def select_features(xy: np.ndarray, cfg: MapperConfig, width: int, height: int) -> np.ndarray:
-    """Indices of the features to pass on, from points ``xy (K, 2)`` in descending score order
-    (seed 000, II.C): greedy minimum distance, then at most ``per_bin`` per bin, then at most
-    ``max_detections``; the result is in score order.
+def strongest(score: np.ndarray, T: int) -> np.ndarray:
+    """Indices of the ``T`` highest scores, in descending order (a partial sort: frames of dense
+    texture give ten thousand candidates of which a few hundred are ever looked at)."""
+    if T >= len(score):
+        return np.argsort(-score, kind="stable")
+    top = np.argpartition(-score, T - 1)[:T]
+    return top[np.argsort(-score[top], kind="stable")]
+
+
+def select_features(
+    xy: np.ndarray, cfg: MapperConfig, width: int, height: int, score: np.ndarray | None = None, spare: int = 0
+) -> np.ndarray:
+    """Indices of the features to pass on (seed 000, II.C), strongest first: in descending score
+    order, the greedy minimum distance, then at most ``per_bin`` per bin, then at most
+    ``max_detections``.
+
+    ``xy (K, 2)``: points; ``score (K,)``: their scores, or ``None`` when ``xy`` is already in
+    descending score order. ``spare`` > 0 lets ``spare`` more per bin and ``spare`` times 25%
+    more in all through (a pre-selection that a later, exact selection trims).
 
     The greedy decisions for the strongest ``T`` points do not depend on weaker ones, so the
-    work starts on a prefix and grows it only when the prefix yields too few features."""
+    work starts on the strongest few and takes more only when they yield too few features."""
+    per_bin = cfg.per_bin + spare
+    limit = cfg.max_detections + spare * max(4, cfg.max_detections // 4)
     K = len(xy)
-    T = min(K, max(2 * cfg.max_detections, 64))
+    T = min(K, max(2 * limit, 64))
     while True:
-        keep = suppress_within(xy[:T], cfg.min_distance_px)
-        idx = np.flatnonzero(keep)
-        idx = idx[_bin_rank(xy[idx], width, height, cfg.bins_x, cfg.bins_y) < cfg.per_bin]
-        if len(idx) >= cfg.max_detections or T == K:
-            return idx[: cfg.max_detections]
+        order = np.arange(T) if score is None else strongest(score, T)
+        p = xy[order]
+        keep = np.flatnonzero(suppress_within(p, cfg.min_distance_px))
+        keep = keep[_bin_rank(p[keep], width, height, cfg.bins_x, cfg.bins_y) < per_bin]
+        if len(keep) >= limit or T == K:
+            return order[keep[:limit]]
         T = min(K, 4 * T)
 
 
@@ -338,7 +357,7 @@ class HarrisDetector:
 
     def candidate_maxima(self, R: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Integer ``xy (K, 2)`` and ``score (K,)`` of the 3x3 local maxima of ``R`` above the
-        threshold inside the valid region, in descending score order."""
+        threshold inside the valid region, in raster order."""
         m, H, W = self.margin, self.height, self.width
         if valid is None:
             best = cv2.minMaxLoc(R[m : H - m, m : W - m])[1]
@@ -364,16 +383,14 @@ class HarrisDetector:
         r, c = np.nonzero(self._words.view(np.uint8).reshape(-1, 8)[words])
         flat = words[r] * 8 + c
         ys, xs = np.divmod(flat, W)
-        score = R[ys, xs].astype(np.float64)
-        order = np.argsort(-score, kind="stable")
-        return np.column_stack([xs[order], ys[order]]), score[order]
+        return np.column_stack([xs, ys]), R.reshape(-1)[flat].astype(np.float64)
 
-    def refine(self, gray: np.ndarray, xy0: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
-        """Sub-pixel positions ``(N, 2)``; a refined position that leaves the valid region falls
-        back to its integer pixel (which is valid)."""
+    def refine(self, gray: np.ndarray, xy0: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Sub-pixel positions ``(N, 2)`` and ``inside (N,)``: ``False`` where the refined corner
+        lies outside the valid region (the true corner is in the margin: not a feature)."""
         w = self.cfg.subpix_window_px
         if w <= 0 or len(xy0) == 0:
-            return xy0.astype(np.float64)
+            return xy0.astype(np.float64), np.ones(len(xy0), bool)
         xy = refine_corners(gray, xy0, w)
         e = self._edge
         inside = (xy[:, 0] >= e) & (xy[:, 0] <= self.width - 1 - e) & (xy[:, 1] >= e) & (xy[:, 1] <= self.height - 1 - e)
@@ -385,7 +402,7 @@ class HarrisDetector:
             px[:, 0] = np.clip(px[:, 0], 0, self.width - 1)
             px[:, 1] = np.clip(px[:, 1], 0, self.height - 1)
             inside &= valid[px[:, 1], px[:, 0]] != 0
-        return np.where(inside[:, None], xy, xy0.astype(np.float64))
+        return xy, inside
 
     def __call__(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``uv (N, 2)`` float64 raw pixels (x = column, y = row, sub-pixel) and Harris
@@ -402,11 +419,13 @@ class HarrisDetector:
         if len(xy) == 0:
             return _EMPTY_UV.copy(), _EMPTY_SCORE.copy()
         cfg = self.cfg
-        idx = select_features(xy.astype(np.float64), cfg, self.width, self.height)
-        uv = self.refine(gray, xy[idx], valid)
+        # a few spare features make up for those the refinement drops or moves too close
+        idx = select_features(xy.astype(np.float64), cfg, self.width, self.height, score=score, spare=1)
+        uv, inside = self.refine(gray, xy[idx], valid)
+        uv, score = uv[inside], score[idx][inside]  # still strongest first
         # refinement moves points by up to the window: re-apply every guarantee to the result
         again = select_features(uv, cfg, self.width, self.height)
-        return uv[again], score[idx][again]
+        return uv[again], score[again]
 
 
 def detect_corners(

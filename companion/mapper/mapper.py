@@ -175,6 +175,8 @@ class Mapper:
         self.R_img = np.diag([cfg.pixel_sigma_px**2, cfg.pixel_sigma_px**2])
         self.db = FeatureDatabase(cfg.max_features, self.model.STATE_DIM)
         self.frame = 0
+        self._detector = None
+        self._detector_shape: tuple[int, ...] | None = None
 
     # ------------------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -182,22 +184,29 @@ class Mapper:
         self.db.clear()
 
     def step(self, nav: NavState, image: np.ndarray) -> MapperStep:
-        """Detect corners in ``image`` (H, W) uint8, undistort them, then :meth:`step_measurements`."""
+        """Detect corners in ``image`` ((H, W) grey or (H, W, 3) BGR uint8), undistort them, then
+        :meth:`step_measurements`. A bad navigation state is refused before any detection work."""
         image = np.asarray(image)
-        if image.ndim != 2:
-            raise ValueError(f"mapper image must be a 2-D grayscale array, got shape {image.shape}")
+        if image.ndim not in (2, 3):
+            raise ValueError(f"mapper image must be (H, W) or (H, W, 3), got shape {image.shape}")
         reason = check_nav(nav)
-        if reason:  # refuse before spending time on detection
+        if reason:
             return self._refused(nav, 0, reason)
-        detector = self.detector
-        if detector is None:
-            from companion.mapper.features import detect_corners  # written separately; imported lazily
-
-            def detector(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-                return detect_corners(img, self.cfg, border_px=self.border_px)
-
-        uv_raw, _scores = detector(image)
+        if self.detector is not None:
+            uv_raw, _scores = self.detector(image)
+        else:
+            uv_raw, _scores = self._harris(image)
         return self.step_measurements(nav, self.camera.undistort(np.asarray(uv_raw, dtype=float).reshape(-1, 2)))
+
+    def _harris(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The default detector, built once per image size (its buffers are reused frame to frame)."""
+        from companion.mapper.features import HarrisDetector, as_gray  # separate module, imported lazily
+
+        gray = as_gray(image)
+        if self._detector is None or self._detector_shape != gray.shape:
+            self._detector = HarrisDetector(self.cfg, gray.shape[1], gray.shape[0], self.border_px)
+            self._detector_shape = gray.shape
+        return self._detector(gray)
 
     def step_measurements(self, nav: NavState, uv_ideal: np.ndarray) -> MapperStep:
         """One mapper step from ideal (undistorted) pixels ``uv_ideal`` (N, 2) in score order."""

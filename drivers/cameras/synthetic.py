@@ -110,3 +110,19 @@ class SyntheticCamera(CameraSource):
 
     async def close(self) -> None:
         self._closed = True
+
+
+def synthetic_camera_from_config(cfg, clock: Clock, pose_at: PoseProvider, world=None) -> SyntheticCamera:
+    """Build the world (``cfg.sim.scenario`` unless given), renderer and camera from a
+    :class:`companion.config.CompanionConfig`: intrinsics, mount and rate from ``cfg.camera``, sensor
+    noise, blur and pose age limit from ``cfg.sim``."""
+    from companion.geometry import camera_from_config
+    from drivers.sim.renderer import RenderOptions
+    from drivers.sim.world import World
+
+    world = world if world is not None else World.load(cfg.sim.scenario)
+    camera, mount = camera_from_config(cfg.camera)
+    options = RenderOptions(noise_sigma=cfg.sim.image_noise_sigma, blur_sigma_px=cfg.sim.image_blur_sigma_px,
+                            seed=cfg.sim.seed)
+    return SyntheticCamera(Renderer(world, camera, options), mount, cfg.camera.rate_hz, clock, pose_at,
+                           max_pose_age_s=cfg.sim.max_pose_age_s)

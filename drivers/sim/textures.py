@@ -119,12 +119,7 @@ def fields(shape: tuple[int, int], texel_m: float, rng: np.random.Generator, wra
     _polygons(img, patches, rng.integers(50, 200, n), wrap)
     # Rocks and bushes: small, dark or bright, 0.2-0.7 m: the corners seen at 15-40 m. Triangles and
     # quadrilaterals: Harris responds to sharp corners, hardly to the obtuse ones of rounder shapes.
-    n = max(2, int(area_m2 / 1.6))
-    rocks = np.concatenate([
-        _random_convex(rng, rng.uniform([0, 0], [w, h], (n // 2, 2)), rng.uniform(0.12, 0.35, n // 2) / texel_m, 3, 0.8),
-        _random_convex(rng, rng.uniform([0, 0], [w, h], (n // 2, 2)), rng.uniform(0.12, 0.35, n // 2) / texel_m, 4, 1.0)[:, [0, 1, 2, 2, 3]][:, [0, 1, 3, 4, 4]][:, :3].repeat(1, axis=0) if False else
-        _random_convex(rng, rng.uniform([0, 0], [w, h], (n // 2, 2)), rng.uniform(0.12, 0.35, n // 2) / texel_m, 4, 1.0)[:, [0, 1, 2, 3, 3]][:, :3],
-    ]) if False else None
+    n = max(2, int(area_m2 / 1.2))
     rocks3 = _random_convex(rng, rng.uniform([0, 0], [w, h], (n // 2, 2)), rng.uniform(0.12, 0.35, n // 2) / texel_m, 3, 0.8)
     rocks4 = _random_convex(rng, rng.uniform([0, 0], [w, h], (n - n // 2, 2)), rng.uniform(0.12, 0.35, n - n // 2) / texel_m, 4, 1.0)
     dark = rng.random(n) < 0.6

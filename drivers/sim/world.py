@@ -632,6 +632,14 @@ class World:
             poly = (f.vertices_ned - f.vertices_ned[0]) @ np.column_stack([e1, e2])
             edges = np.roll(poly, -1, axis=0) - poly
             self._ray_faces.append((f.normal_ned, f.offset, f.vertices_ned[0], e1, e2, poly, edges))
+        # Faces grouped by structure with a bounding sphere, to skip rays that pass far away.
+        self._ray_groups = []
+        for name in dict.fromkeys(f.structure for f in self.faces):
+            index = [k for k, f in enumerate(self.faces) if f.structure == name]
+            pts = np.vstack([self.faces[k].vertices_ned for k in index])
+            centre = (pts.min(axis=0) + pts.max(axis=0)) / 2
+            radius = float(np.linalg.norm(pts - centre, axis=1).max()) * (1 + 1e-9) + 1e-6
+            self._ray_groups.append((centre, radius, index))
 
     def raycast(self, origins: np.ndarray, rays: np.ndarray, return_face: bool = False):
         """Exact range (m) along each ray to the first surface (ground plane or a face).
@@ -645,29 +653,45 @@ class World:
         if rays.shape[1] != 3 or np.any(norm == 0) or not np.all(np.isfinite(rays)):
             raise ValueError("rays must be (N, 3), finite and non-zero")
         d = rays / norm
-        o = np.broadcast_to(np.asarray(origins, float), d.shape)
+        origins = np.asarray(origins, float)
+        single = origins.ndim == 1
+        if origins.shape[-1] != 3 or not (single or origins.shape == d.shape) or not np.all(np.isfinite(origins)):
+            raise ValueError("origins must be finite, (3,) or (N, 3) like rays")
+        o = origins
         best = np.full(len(d), np.inf)
         which = np.full(len(d), -2, dtype=np.int64)
         # Ground plane z = 0 (seen from above: origin z < 0, ray going down).
+        oz = np.broadcast_to(o[..., 2], best.shape)
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where((d[:, 2] > 0) & (o[:, 2] < 0), -o[:, 2] / d[:, 2], np.inf)
+            t = np.where((d[:, 2] > 0) & (oz < 0), -oz / d[:, 2], np.inf)
         hit = t < best
         best[hit], which[hit] = t[hit], -1
         eps = 1e-9
-        for index, (n, off, v0, e1, e2, poly, edges) in enumerate(self._ray_faces):
-            denom = d @ n
-            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                t = (off - o @ n) / denom
-            cand = np.nonzero((np.abs(denom) > 1e-12) & (t > eps) & (t < best))[0]
-            if not len(cand):
+        for centre, radius, faces in self._ray_groups:
+            # Only rays passing through the structure's bounding sphere can hit its faces.
+            oc = centre - o
+            along = d @ oc if single else np.einsum("ij,ij->i", d, oc)
+            miss2 = (oc @ oc if single else np.einsum("ij,ij->i", oc, oc)) - along**2
+            sel = np.nonzero((miss2 <= radius**2) & (along > -radius))[0]
+            if not len(sel):
                 continue
-            p = o[cand] + t[cand, None] * d[cand] - v0
-            p2 = np.stack([p @ e1, p @ e2], axis=1)
-            rel = p2[:, None, :] - poly[None, :, :]
-            cross = edges[None, :, 0] * rel[:, :, 1] - edges[None, :, 1] * rel[:, :, 0]
-            inside = np.all(cross >= -1e-9, axis=1)
-            idx = cand[inside]
-            best[idx], which[idx] = t[idx], index
+            ds = d[sel]
+            os_ = o if single else o[sel]
+            for index in faces:
+                n, off, v0, e1, e2, poly, edges = self._ray_faces[index]
+                denom = ds @ n
+                with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                    t = (off - os_ @ n) / denom
+                cand = np.nonzero((np.abs(denom) > 1e-12) & (t > eps) & (t < best[sel]))[0]
+                if not len(cand):
+                    continue
+                p = (os_ if single else os_[cand]) + t[cand, None] * ds[cand] - v0
+                p2 = np.stack([p @ e1, p @ e2], axis=1)
+                rel = p2[:, None, :] - poly[None, :, :]
+                cross = edges[None, :, 0] * rel[:, :, 1] - edges[None, :, 1] * rel[:, :, 0]
+                inside = np.all(cross >= -1e-9, axis=1)
+                idx = sel[cand[inside]]
+                best[idx], which[idx] = t[cand[inside]], index
         return (best, which) if return_face else best
 
 

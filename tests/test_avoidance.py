@@ -1,0 +1,270 @@
+"""Pull-up / push-over law: the kinematics behind eqs. 18-20 (docs/avoidance.md) and the command."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from companion.avoidance import (
+    PullUpLaw,
+    height_restriction,
+    minimum_climb_rate,
+    nominal_climb_rate,
+    stopping_time,
+    time_to_go,
+)
+from companion.config import AvoidanceConfig
+from companion.messages import TerrainPoints
+from companion.terrain import TerrainGrid
+
+
+def bang_bang_gain(w, s, a):
+    """Altitude gained by +a then -a from climb rate w to zero climb rate in s/a seconds."""
+    return (s * s + 2 * s * w - w * w) / (4 * a)
+
+
+def profile_end(w, dt, a, cap, steps=20000):
+    """Integrate the profile the law assumes: accelerate at +a (up to the cap) while the distance
+    needed to stop at -a is not yet reached in the remaining time, then brake. Returns the
+    altitude gained and the final climb rate."""
+    # time-optimal structure: accelerate, (cruise), decelerate; found numerically by bisection on t1
+    def run(t1):
+        h, v, t = 0.0, w, 0.0
+        step = dt / steps
+        for _ in range(steps):
+            acc = a if t < t1 else -a
+            v_new = min(v + acc * step, cap)
+            if v_new < 0 and t >= t1:
+                v_new = max(v_new, v - a * step)
+            h += 0.5 * (v + v_new) * step
+            v, t = v_new, t + step
+        return h, v
+
+    lo, hi = 0.0, dt
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        _, v = run(mid)
+        lo, hi = (mid, hi) if v < 0 else (lo, mid)
+    return run(0.5 * (lo + hi))
+
+
+@settings(max_examples=100, deadline=None)
+@given(gain=st.floats(-50, 50), dt=st.floats(0.1, 30), a=st.floats(0.2, 5))
+def test_eq19_is_the_bang_bang_pull_up(gain, dt, a):
+    """Between the push-over and the saturated regions, w = s - sqrt(2 s^2 - 4 a H) starts a
+    +a/-a profile that arrives at h_i + h_c after dt with zero climb rate."""
+    s = a * dt
+    assume(-s * s / (2 * a) < gain <= s * s / (2 * a))
+    w = float(minimum_climb_rate(np.array([gain]), np.array([dt]), a)[0])
+    t1 = (s - w) / (2 * a)  # switch time from +a to -a
+    assert -1e-9 <= t1 <= dt + 1e-9
+    assert w + a * t1 - a * (dt - t1) == pytest.approx(0.0, abs=1e-9 * max(1, s))
+    assert bang_bang_gain(w, s, a) == pytest.approx(gain, abs=1e-7 * max(1, abs(gain), s * s / a))
+    # Tight: starting slower by 1 cm/s the same profile family falls short.
+    assert bang_bang_gain(w - 0.01, s, a) < gain
+
+
+@settings(max_examples=25, deadline=None)
+@given(gain=st.floats(1, 40), dt=st.floats(2, 30), a=st.floats(0.3, 3), cap=st.floats(0.5, 5))
+def test_climb_limit_gives_the_trapezoid(gain, dt, a, cap):
+    """When the bang-bang peak would exceed max_climb, the bound is the start of an
+    accelerate-cruise-brake profile that still arrives level at the restriction in time."""
+    w = float(minimum_climb_rate(np.array([gain]), np.array([dt]), a, cap)[0])
+    w_free = float(minimum_climb_rate(np.array([gain]), np.array([dt]), a)[0])
+    assume(w < cap - 1e-3 and 0.5 * (a * dt + w_free) > cap)
+    assert w >= w_free - 1e-12  # the cap can only make the bound stricter
+    h, v = profile_end(w, dt, a, cap, steps=4000)
+    assert v == pytest.approx(0.0, abs=2e-3 * max(1, a * dt))
+    assert h == pytest.approx(gain, abs=0.02 * max(1, gain))
+
+
+def test_push_over_and_saturated_regions_are_braking_curves():
+    a, dt = 2.0, 1.5
+    s = a * dt
+    far_above = -5 * s * s / (2 * a)
+    w = minimum_climb_rate(np.array([far_above]), np.array([dt]), a)[0]
+    assert w == pytest.approx(-math.sqrt(2 * a * -far_above))
+    assert w * w / (2 * a) == pytest.approx(-far_above)  # braking at a stops exactly at the restriction
+    too_low = 3 * s * s / (2 * a)
+    w = minimum_climb_rate(np.array([too_low]), np.array([dt]), a)[0]
+    assert w == pytest.approx(math.sqrt(2 * a * too_low))
+    # Eq. 20 (w = a dt) is the value on the boundary; over the obstacle (dt = 0) a vehicle still
+    # below the restriction keeps climbing instead of being told 0.
+    assert minimum_climb_rate(np.array([s * s / (2 * a)]), np.array([dt]), a)[0] == pytest.approx(s)
+    assert minimum_climb_rate(np.array([4.0]), np.array([0.0]), a)[0] == pytest.approx(4.0)
+    assert minimum_climb_rate(np.array([-4.0]), np.array([0.0]), a)[0] == pytest.approx(-4.0)
+    assert minimum_climb_rate(np.array([4.0]), np.array([np.inf]), a)[0] == -np.inf
+
+
+@settings(max_examples=40, deadline=None)
+@given(dt=st.floats(0, 20), a=st.floats(0.2, 5), cap=st.one_of(st.just(math.inf), st.floats(0.5, 8)))
+def test_bound_is_continuous_and_monotone(dt, a, cap):
+    gains = np.linspace(-60, 60, 6001)
+    w = minimum_climb_rate(gains, np.full(gains.shape, dt), a, cap)
+    w = np.minimum(w, cap)  # beyond the cap the command is clipped anyway
+    assert np.all(np.diff(w) >= -1e-9)
+    # Lipschitz away from H = 0 at dt = 0 (sqrt there): steps of 0.02 m move w by little.
+    assert np.max(np.diff(w)) < 0.5 + 2 * math.sqrt(2 * a * 0.02)
+    later = minimum_climb_rate(gains, np.full(gains.shape, dt + 0.5), a, cap)
+    assert np.all(np.minimum(later, cap) <= w + 1e-9)
+
+
+def test_eq18_and_time_to_go():
+    assert height_restriction(np.array(10.0), 5.0, 2.0, np.array(3.0)) == pytest.approx(6.0)
+    along = np.array([20.0, 20.0, 3.0, -2.0])
+    cross = np.array([0.0, 4.0, 1.0, 0.0])
+    dt = time_to_go(along, cross, 5.0, 2.0)
+    np.testing.assert_allclose(dt, [7.5, 8.5, 0.0, 0.0])
+    np.testing.assert_array_equal(time_to_go(along, cross, 5.0, 0.0), [np.inf, np.inf, 0.0, 0.0])
+
+
+def test_nominal_return_needs_at_most_a_c_and_is_linear_near_target():
+    a, tau = 1.5, 1.2
+    e = np.linspace(-40, 40, 80001)
+    w = np.array([nominal_climb_rate(x, a, tau) for x in e])
+    assert np.all(np.diff(w) > 0) and nominal_climb_rate(0.0, a, tau) == 0.0
+    # Following w(e) with de/dt = -w needs dw/dt = -w'(e) w: never more than a.
+    dwde = np.gradient(w, e)
+    assert np.max(np.abs(dwde * w)) <= a * 1.001
+    assert nominal_climb_rate(0.01, a, tau) == pytest.approx(0.01 / tau, rel=1e-2)
+    assert nominal_climb_rate(-30.0, a, tau) == pytest.approx(-(math.sqrt(2 * a * 30 + (a * tau) ** 2) - a * tau))
+
+
+def test_stopping_time():
+    assert stopping_time(4.0, 1.0) == pytest.approx(4.0)  # 2 sqrt(H/a)
+    assert stopping_time(16.0, 1.0, 3.0) == pytest.approx(16 / 3 + 3)
+    assert stopping_time(-1.0, 1.0) == 0.0
+    for gain, a, cap in [(4.0, 1.0, math.inf), (16.0, 1.0, 3.0), (9.0, 1.0, 3.0)]:
+        t = stopping_time(gain, a, cap)
+        assert minimum_climb_rate(np.array([gain]), np.array([t]), a, cap)[0] == pytest.approx(0.0, abs=1e-6)
+
+
+# ------------------------------------------------------------------------------ the command
+
+
+def mapped(cells, ground=0.0, extent=((-30, 150), (-20, 20))):
+    """A grid with flat mapped ground and some cells (north, east, height) above it."""
+    grid = TerrainGrid(gate_min_count=10**6)  # test maps: no gating, the last word wins
+    (n0, n1), (e0, e1) = extent
+    n, e = np.meshgrid(np.arange(n0, n1) + 0.5, np.arange(e0, e1) + 0.5, indexing="ij")
+    pos = np.c_[n.ravel(), e.ravel(), np.full(n.size, -ground)]
+    grid.insert(TerrainPoints(0.0, pos, np.tile(np.eye(3) * 1e-4, (len(pos), 1, 1))))
+    if len(cells):
+        cells = np.asarray(cells, dtype=float)
+        # Replace the ground under the obstacle cells (a fresh grid would need evidence to move).
+        g2 = TerrainGrid(gate_min_count=10**6)
+        for key in grid.keys():
+            g2.put_tile(grid.tile(key))
+        grid = g2
+        tiles = {}
+        for n_, e_, h_ in cells:
+            ci, cj = int(math.floor(n_)), int(math.floor(e_))
+            key = (ci // 32, cj // 32)
+            tile = tiles.get(key) or grid.tile(key)
+            tile.height[ci % 32, cj % 32] = h_
+            tiles[key] = tile
+        for tile in tiles.values():
+            grid.put_tile(tile)
+    return grid
+
+
+CFG = AvoidanceConfig(clearance_m=10.0, accel_mps2=1.0, miss_distance_m=3.0, lookahead_m=80.0,
+                      max_climb_mps=3.0, max_descent_mps=2.0, nominal_alt_m=10.0)
+
+
+def test_level_flight_over_flat_ground_commands_nothing():
+    c = PullUpLaw(CFG).command([0, 0.5, -10.0], [5, 0, 0], mapped([]))
+    assert c.climb_rate_mps == pytest.approx(0.0, abs=1e-9) and not c.engaged
+    assert c.unknown_cells_ahead == 0 and c.limiting_cell_ne is None
+
+
+def test_obstacle_ahead_sets_the_command_and_reports_it():
+    grid = mapped([[40.5, 0.5, 8.0]])
+    far = PullUpLaw(CFG).command([0, 0.5, -10.0], [5, 0, 0], grid)
+    assert not far.engaged  # 36 m to go: a level vehicle need not climb yet
+    c = PullUpLaw(CFG).command([13, 0.5, -10.0], [5, 0, 0], grid)
+    radius = CFG.miss_distance_m + math.sqrt(0.5)
+    dt = (27.5 - radius) / 5.0
+    expected = minimum_climb_rate(np.array([8.0]), np.array([dt]), 1.0, 3.0)[0]
+    assert 0 < expected < 3.0
+    assert c.engaged and c.limiting_cell_ne == (40.5, 0.5) and c.limiting_height_m == 8.0
+    assert c.time_to_go_s == pytest.approx(dt)
+    assert c.climb_rate_mps == pytest.approx(expected)
+    assert c.required_alt_m == pytest.approx(18.0 - 0.5 * dt * dt)
+    # Too close to pull up smoothly: the climb limit.
+    c = PullUpLaw(CFG).command([30, 0.5, -10.0], [5, 0, 0], grid)
+    assert c.climb_rate_mps == CFG.max_climb_mps
+
+
+def test_only_cells_within_the_miss_distance_count():
+    radius = CFG.miss_distance_m + math.sqrt(0.5)
+    law = PullUpLaw(CFG)
+    inside = law.command([0, 0.0, -10.0], [5, 0, 0], mapped([[40.5, radius - 0.6, 15.0]]))
+    outside = law.command([0, 0.0, -10.0], [5, 0, 0], mapped([[40.5, radius + 0.6, 15.0]]))
+    behind = law.command([0, 0.0, -10.0], [5, 0, 0], mapped([[-radius - 1.0, 0.5, 15.0]]))
+    assert inside.engaged and not outside.engaged and not behind.engaged
+
+
+def test_hover_looks_around_not_ahead():
+    law = PullUpLaw(CFG)
+    ahead = law.command([0, 0.5, -10.0], [0.05, 0, 0], mapped([[10.5, 0.5, 8.0]]))
+    assert not ahead.engaged  # never arrives at hover speed
+    beside = law.command([0, 0.5, -10.0], [0.0, 0.0, 0], mapped([[2.5, -1.5, 8.0]]))
+    assert beside.engaged and beside.climb_rate_mps == pytest.approx(min(math.sqrt(2 * 8.0), 3.0))
+
+
+def test_push_over_is_bounded_by_the_terrain_and_the_descent_limit():
+    law = PullUpLaw(CFG)
+    # 30 m above a 10 m clearance over flat ground, nominal 10 m: descend at the descent limit.
+    c = law.command([0, 0.5, -40.0], [5, 0, 0], mapped([]))
+    assert c.climb_rate_mps == -CFG.max_descent_mps
+    # Nominal says go down to 10, but a mapped 25 m plateau holds the vehicle at 35.
+    plateau = mapped([], ground=25.0)
+    c = law.command([0, 0.5, -36.0], [5, 0, 0], plateau)
+    assert c.engaged and -math.sqrt(2 * 1.0 * 1.0) - 1e-9 <= c.climb_rate_mps < 0
+    c = law.command([0, 0.5, -35.0], [5, 0, 0], plateau)
+    assert c.climb_rate_mps == pytest.approx(0.0, abs=1e-9)
+
+
+def test_unmapped_cells_are_not_ground_at_zero():
+    law = PullUpLaw(CFG)
+    # An empty map: no information, the law cannot invent an obstacle; it says so.
+    c = law.command([0, 0.5, -10.0], [5, 0, 0], TerrainGrid())
+    assert not c.engaged and c.climb_rate_mps == pytest.approx(0.0, abs=1e-9)
+    corridor = TerrainGrid().corridor((0, 0.5), (1, 0), CFG.lookahead_m, CFG.miss_distance_m + math.sqrt(0.5))
+    assert c.unknown_cells_ahead == len(corridor) > 0
+    # A 25 m plateau with an unmapped hole under and ahead of the vehicle: the hole is plateau.
+    full = mapped([], ground=25.0)
+    holed, zero = TerrainGrid(gate_min_count=10**6), TerrainGrid(gate_min_count=10**6)
+    for key in full.keys():
+        t = full.tile(key)
+        if key[0] == 0:
+            t.height[:8, :], t.variance[:8, :], t.count[:8, :] = np.nan, np.inf, 0
+        holed.put_tile(t)
+        if key[0] == 0:
+            t.height[:8, :], t.variance[:8, :], t.count[:8, :] = 0.0, 1e-4, 1
+        zero.put_tile(t)
+    assert np.isnan(holed.height_at(4.5, 0.5)[0])
+    for alt in (34.0, 35.0, 36.0, 38.0):
+        a = law.command([4, 0.5, -alt], [5, 0, 0], holed)
+        b = law.command([4, 0.5, -alt], [5, 0, 0], full)
+        assert a.climb_rate_mps == pytest.approx(b.climb_rate_mps)
+        assert a.unknown_cells_ahead == 0
+    # Hovering over the hole: ground at zero there would let the vehicle sink into the plateau's
+    # clearance; the law takes the highest mapped height around instead.
+    assert law.command([4, 0.5, -36.0], [0, 0, 0], zero).climb_rate_mps == -CFG.max_descent_mps
+    assert law.command([4, 0.5, -36.0], [0, 0, 0], holed).climb_rate_mps == pytest.approx(-math.sqrt(2.0))
+    assert law.command([4, 0.5, -34.0], [0, 0, 0], holed).climb_rate_mps == pytest.approx(math.sqrt(2.0))
+    # Beyond the fill distance from anything mapped, a cell is reported, not guessed.
+    far = mapped([], ground=25.0, extent=((-30, 20), (-20, 20)))
+    c = law.command([0, 0.5, -35.0], [5, 0, 0], far)
+    assert c.unknown_cells_ahead > 0
+
+
+def test_bad_state_is_refused():
+    with pytest.raises(ValueError, match="finite"):
+        PullUpLaw(CFG).command([0, np.nan, -10.0], [5, 0, 0], TerrainGrid())
