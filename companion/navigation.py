@@ -1,7 +1,7 @@
 """NavState assembly from what the autopilot actually sends, and the covariance models.
 
 Pure: messages go in as decoded objects (pymavlink messages: ``msg.get_type()`` and attributes)
-or plain dicts (``{"mavpackettype": "LOCAL_POSITION_NED", "x": ...}``), with the companion time
+or plain dicts (``{"mavpackettype": "LOCAL_POSITION_NED", "x": ...}``, as ``msg.to_dict()`` gives), with the companion time
 at which they arrived; :class:`NavState` comes out. No sockets here (``drivers/autopilot.py``
 owns the link), so every model can be tested from numbers alone.
 
@@ -48,7 +48,7 @@ next model is used; the state itself is kept).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -333,13 +333,14 @@ class _Evidence:
 
 
 def message_type(msg: Any) -> str:
-    if isinstance(msg, Mapping):
+    if isinstance(msg, dict):
         return str(msg.get("mavpackettype", ""))
     return msg.get_type()
 
 
 def _get(msg: Any, name: str, default: Any = None) -> Any:
-    if isinstance(msg, Mapping):
+    # isinstance(dict) rather than Mapping: the ABC check costs more than the rest of a field read
+    if isinstance(msg, dict):
         return msg.get(name, default)
     return getattr(msg, name, default)
 
@@ -383,6 +384,8 @@ class NavAssembler:
         self._pos: _Position | None = None
         self._att: _Attitude | None = None
         self._evidence: dict[str, _Evidence] = {}
+        self._evidence_version = 0
+        self._covariance_cache: tuple[tuple, np.ndarray, str] | None = None
         self._unix_minus_boot_s: float | None = None
         self._last_emitted_t = -math.inf
         self._odometry_reset_counter: int | None = None
@@ -407,6 +410,14 @@ class NavAssembler:
             np.full(3, c.velocity_sigma_floor_mps),
             np.full(3, math.radians(c.attitude_sigma_floor_deg)),
         ]
+
+    def _set_evidence(self, kind: str, ev: _Evidence) -> None:
+        self._evidence[kind] = ev
+        self._evidence_version += 1
+
+    def _drop_evidence(self, kind: str) -> None:
+        if self._evidence.pop(kind, None) is not None:
+            self._evidence_version += 1
 
     # ------------------------------------------------------------------------------------------
     # Time
@@ -456,10 +467,10 @@ class NavAssembler:
         self.rejections.add(f"{kind}: {reason}", detail)
 
     def _valid_vector(self, kind: str, what: str, v: np.ndarray) -> bool:
-        if not np.all(np.isfinite(v)):
+        if not all(math.isfinite(x) for x in v):
             self._reject(kind, f"non-finite {what}", str(v))
             return False
-        if np.any(np.abs(v) > POSITION_LIMIT_M):
+        if max(abs(v[0]), abs(v[1]), abs(v[2])) > POSITION_LIMIT_M:
             self._reject(kind, f"{what} out of range", str(v))
             return False
         return True
@@ -553,7 +564,7 @@ class NavAssembler:
             self._reject(kind, f"velocity {problem}")
         elif vel_cov is not None:
             ev.vel = vel_cov if R is None else R @ vel_cov @ R.T
-        self._evidence[kind] = ev
+        self._set_evidence(kind, ev)
 
         t = self._companion_time(self._time_usec_to_boot_s(_get(msg, "time_usec", 0)), t_rx)
         self._pos = _Position(t, p, v)
@@ -564,7 +575,7 @@ class NavAssembler:
 
     def _on_local_position_ned_cov(self, msg: Any, t_rx: float) -> None:
         kind = "LOCAL_POSITION_NED_COV"
-        self._evidence.pop(kind, None)
+        self._drop_evidence(kind)
         P, problem = reported_covariance(_get(msg, "covariance"), 9)
         if problem is None and P is not None:
             pos, problem = covariance_block(P, slice(0, 3))
@@ -573,7 +584,7 @@ class NavAssembler:
             if problem is None and pos is not None and vel is not None:
                 _, problem = covariance_block(P, slice(0, 6))
             if problem is None and pos is not None and vel is not None:  # the model needs both blocks
-                self._evidence[kind] = _Evidence(t_rx, pos=pos, vel=vel, pos_vel=P[:3, 3:6].copy())
+                self._set_evidence(kind, _Evidence(t_rx, pos=pos, vel=vel, pos_vel=P[:3, 3:6].copy()))
         if problem:
             self._reject(kind, problem)
         return None
@@ -585,16 +596,16 @@ class NavAssembler:
             return None
         values = np.asarray(_get(msg, "covariance"), dtype=float).reshape(-1)
         if values.size != 9 or math.isnan(values[0]):
-            self._evidence.pop(kind, None)
+            self._drop_evidence(kind)
             return None
         P = values.reshape(3, 3)
         P = np.where(np.isnan(P) & ~np.eye(3, dtype=bool), 0.0, P)
         problem = covariance_problem(0.5 * (P + P.T)) if np.allclose(P, P.T, rtol=1e-4, atol=1e-12) else "covariance not symmetric"
         if problem:
             self._reject(kind, problem)
-            self._evidence.pop(kind, None)
+            self._drop_evidence(kind)
             return None
-        self._evidence[kind] = _Evidence(t_rx, att=euler_covariance_to_rotvec(0.5 * (P + P.T), q))
+        self._set_evidence(kind, _Evidence(t_rx, att=euler_covariance_to_rotvec(0.5 * (P + P.T), q)))
         return None
 
     def _on_estimator_status(self, msg: Any, t_rx: float) -> None:
@@ -611,7 +622,7 @@ class NavAssembler:
             "mag_ratio": float(_get(msg, "mag_ratio", math.nan)),
             "flags": float(_get(msg, "flags", 0)),
         }
-        self._evidence[kind] = ev
+        self._set_evidence(kind, ev)
         return None
 
     def _on_ekf_status_report(self, msg: Any, t_rx: float) -> None:
@@ -621,7 +632,7 @@ class NavAssembler:
             self._reject("EKF_STATUS_REPORT", "negative or non-finite test ratio", str(values))
             return None
         values["flags"] = float(_get(msg, "flags", 0))
-        self._evidence["EKF_STATUS_REPORT"] = _Evidence(t_rx, values=values)
+        self._set_evidence("EKF_STATUS_REPORT", _Evidence(t_rx, values=values))
         return None
 
     def _on_gps_raw_int(self, msg: Any, t_rx: float) -> None:
@@ -633,9 +644,9 @@ class NavAssembler:
             "vel_acc_mps": int(_get(msg, "vel_acc", 0)) * 1e-3,
         }
         if fix < GPS_FIX_TYPE_3D:
-            self._evidence.pop("GPS_RAW_INT", None)
+            self._drop_evidence("GPS_RAW_INT")
             return None
-        self._evidence["GPS_RAW_INT"] = _Evidence(t_rx, values=values)
+        self._set_evidence("GPS_RAW_INT", _Evidence(t_rx, values=values))
         return None
 
     # --- context ---------------------------------------------------------------------------------
@@ -728,7 +739,22 @@ class NavAssembler:
         return ev
 
     def covariance(self, now: float) -> tuple[np.ndarray, str]:
-        """The 9x9 covariance and its source string from the evidence fresh at ``now`` (arrival clock)."""
+        """The 9x9 covariance and its source string from the evidence fresh at ``now`` (arrival clock).
+
+        Cached until the evidence or its freshness changes (states arrive at 100 Hz, evidence at a
+        few Hz); the returned array is read-only and shared by the states built from it.
+        """
+        max_age = self.cfg.covariance_max_age_s
+        key = (self._evidence_version, tuple(k for k, ev in self._evidence.items() if now - ev.t_rx <= max_age))
+        cached = self._covariance_cache
+        if cached is not None and cached[0] == key:
+            return cached[1], cached[2]
+        P, source = self._compute_covariance(now)
+        P.flags.writeable = False
+        self._covariance_cache = (key, P, source)
+        return P, source
+
+    def _compute_covariance(self, now: float) -> tuple[np.ndarray, str]:
         odo = self._fresh("ODOMETRY", now)
         lpc = self._fresh("LOCAL_POSITION_NED_COV", now)
         aqc = self._fresh("ATTITUDE_QUATERNION_COV", now)
@@ -884,8 +910,8 @@ def _quat_exp(rotvec: np.ndarray) -> np.ndarray:
     angle = float(np.linalg.norm(rotvec))
     if angle < 1e-12:
         return np.array([1.0, *(0.5 * rotvec)])
-    axis = rotvec / angle
-    return np.r_[math.cos(0.5 * angle), math.sin(0.5 * angle) * axis]
+    s = math.sin(0.5 * angle) / angle
+    return np.array([math.cos(0.5 * angle), s * rotvec[0], s * rotvec[1], s * rotvec[2]])
 
 
 __all__ = [

@@ -264,7 +264,9 @@ class UdpTransport(Transport):
         self.on_bytes(data)
 
     def write(self, data: bytes) -> bool:
-        if self._transport is None or self._transport.is_closing() or self.peer is None:
+        if self.peer is None:
+            return False  # udpin before anyone has sent to us: nobody to talk to yet (not a drop)
+        if self._transport is None or self._transport.is_closing():
             self.dropped_writes += 1
             return False
         if self.endpoint.kind == "udpin":

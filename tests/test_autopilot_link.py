@@ -8,6 +8,7 @@ arming, REQUEST_MESSAGE, and it records what the companion sends.
 
 import asyncio
 import contextlib
+import json
 import math
 import os
 import random
@@ -353,6 +354,7 @@ def test_ardupilot_over_udp_heartbeat_streams_nav_time_and_covariance_source():
             assert st["nav"]["covariance_source"] == "EKF_STATUS_REPORT+GPS_RAW_INT+floors"
             assert st["nav"]["covariance_blocks"]["attitude"] == "EKF_STATUS_REPORT+floors"
             assert st["link"]["state"] == "connected" and st["link"]["autopilot"]["mode"] == "LOITER"
+            json.loads(json.dumps(st))  # plain data, publishable as it is
 
             # The nav buffer interpolates the truth at companion times (time mapping included).
             now = clock.now()
@@ -705,5 +707,102 @@ def test_unreachable_tcp_reports_the_error_and_retries_with_backoff():
             st = link.status()["link"]
             assert st["state"] in ("reconnecting", "connecting")
             assert f"cannot open tcp:127.0.0.1:{port}" in st["last_error"]
+
+    run(main())
+
+
+def test_cancellation_always_stops_the_link_promptly():
+    """Cancelling run() at any moment (mid command, mid reconnect) ends it: no swallowed cancellation."""
+
+    async def main():
+        clock = Clock()
+        peer = Peer(clock, "ardupilot")
+        port = await peer.serve_tcp()
+        peer.start()
+        rng = random.Random(3)
+        for i in range(12):
+            peer._client = None  # each new link is the port's single client
+            link = AutopilotLink(make_cfg(f"tcp:127.0.0.1:{port}"), clock)
+            task = asyncio.create_task(link.run())
+            await asyncio.sleep(rng.uniform(0.0, 0.15))
+            async with asyncio.timeout(1.0):
+                await cancel_and_wait(task)
+            assert link.state == "stopped"
+        await peer.stop()
+
+    run(main())
+
+
+def test_signed_link_rejects_unsigned_traffic_when_signing_is_required(tmp_path):
+    key = bytes(range(32))
+    key_file = tmp_path / "mavlink.key"
+    key_file.write_text(key.hex() + "\n")
+
+    def sign(mav):
+        mav.signing.secret_key = key
+        mav.signing.sign_outgoing = True
+        mav.signing.timestamp = int((__import__("time").time() - 1420070400) * 100_000)
+
+    async def main():
+        clock = Clock()
+        unsigned = Peer(clock, "ardupilot")
+        port = await unsigned.serve_udp()
+        unsigned.start()
+        cfg = make_cfg(f"udpout:127.0.0.1:{port}", **{"link.signing_key_file": str(key_file), "link.signing_required": True})
+        link = AutopilotLink(cfg, clock)
+        async with running(link):
+            await asyncio.sleep(0.5)
+            assert not link.connected
+            assert link.status()["rejected"].get("wire: bad or missing signature", 0) > 0
+        await unsigned.stop()
+
+        signed = Peer(clock, "ardupilot")
+        sign(signed.mav)
+        signed.mav.signing.allow_unsigned_callback = lambda mav, msg_id: False
+        port = await signed.serve_udp()
+        signed.start()
+        link = AutopilotLink(replace(cfg, **{"link.connection": f"udpout:127.0.0.1:{port}"}), clock)
+        async with running(link):
+            assert await link.wait_connected(3.0)
+            await until(lambda: signed.of_type("COMMAND_LONG"), what="signed commands accepted by the peer")
+            assert signed.mav.signing.goodsig_count > 0 and signed.mav.signing.reject_count == 0
+        await signed.stop()
+
+    run(main())
+
+
+def test_bad_signing_key_file_is_a_clear_error(tmp_path):
+    bad = tmp_path / "short.key"
+    bad.write_text("abcd")
+    with pytest.raises(ValueError, match="link.signing_key_file.*64 hex"):
+        AutopilotLink(make_cfg("udpin:127.0.0.1:0", **{"link.signing_key_file": str(bad)}), Clock())
+    with pytest.raises(ValueError, match="cannot read"):
+        AutopilotLink(make_cfg("udpin:127.0.0.1:0", **{"link.signing_key_file": str(tmp_path / "none")}), Clock())
+    with pytest.raises(ValueError, match="not understood"):
+        AutopilotLink(make_cfg("com7"), Clock())
+
+
+def test_a_cancelled_command_stays_cancelled_even_when_its_ack_arrives_at_the_same_moment():
+    """Regression: asyncio.wait_for (3.11) returns the result instead of raising when the answer and
+    the cancellation coincide, which left a link task running through shutdown."""
+
+    class NullTransport:
+        stream = False
+        dropped_writes = 0
+
+        def write(self, data):
+            return True
+
+    async def main():
+        link = AutopilotLink(make_cfg("udpin:127.0.0.1:0"), Clock())
+        link._command_lock = asyncio.Lock()
+        link._target = (1, 1)
+        link._transport = NullTransport()
+        task = asyncio.create_task(link._command(mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, (32, 20000, 0, 0, 0, 0, 0)))
+        await until(lambda: link._pending is not None, what="command sent")
+        link._pending.future.set_result("ACCEPTED")
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
 
     run(main())

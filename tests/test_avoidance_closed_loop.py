@@ -74,7 +74,8 @@ def fly(v, a_c, a_ratio, k, climb, descent, clearance, nominal_extra, box_h, box
     mapped_at, margin = math.nan, math.inf
     after: list[float] = []
     while True:
-        if math.isnan(mapped_at) and i0 - x <= d_stop * det_factor:
+        # Mapped on the last control step that is still at least det_factor stopping distances out.
+        if math.isnan(mapped_at) and i0 - (x + v * DT) < d_stop * det_factor:
             grid.insert(box)
             mapped_at = i0 - x
         cmd = law.command([x, track_e, -h], [v, 0.0, 0.0], grid).climb_rate_mps

@@ -283,7 +283,13 @@ def test_vectorised_selection_equals_the_sequential_rule(pts, d, per_bin, max_de
 
     xy = np.array(pts, float).reshape(-1, 2)
     cfg = cfg_with(bins_x=4, bins_y=3, per_bin=per_bin, min_distance_px=d, max_detections=max_detections)
-    assert select_features(xy, cfg, 100, 80).tolist() == reference_select(xy, cfg, 100, 80)
+    expected = reference_select(xy, cfg, 100, 80)
+    assert select_features(xy, cfg, 100, 80).tolist() == expected
+    # the same points shuffled, with scores that give the original order back
+    perm = np.random.default_rng(len(pts)).permutation(len(xy))
+    score = np.linspace(2.0, 1.0, len(xy))[perm]
+    picked = select_features(xy[perm], cfg, 100, 80, score=score)
+    assert perm[picked].tolist() == expected
 
 
 def test_suppression_is_the_greedy_loop_on_a_chain():
@@ -454,7 +460,9 @@ def test_cost_relative_to_cornerharris_alone():
         t_h.append(t1 - t0)
         t_d.append(t2 - t1)
     h, d = np.median(t_h[20:]), np.median(t_d[20:])
-    print(f"\n640x480: cornerHarris {h * 1e3:.3f} ms, detector {d * 1e3:.3f} ms ({len(uv)} features, "
-          f"{det.n_candidates} candidates), ratio {d / h:.2f}")
+    h_min, d_min = min(t_h), min(t_d)  # the least disturbed runs: what the code costs
+    print(f"\n640x480: cornerHarris {h * 1e3:.3f} ms (min {h_min * 1e3:.3f}), detector {d * 1e3:.3f} ms "
+          f"(min {d_min * 1e3:.3f}), {len(uv)} features of {det.n_candidates} candidates; "
+          f"ratio median {d / h:.2f}, min {d_min / h_min:.2f}")
     assert len(uv) >= 0.95 * cfg.max_detections
-    assert d / h < 5.0
+    assert d_min / h_min < 4.0

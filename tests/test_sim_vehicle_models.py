@@ -57,21 +57,25 @@ def test_velocity_setpoint_is_followed_and_the_reference_respects_the_accelerati
             errors.append(math.dist(m.v[:2], (6.0, -2.0)))
     assert max(ref_acc) <= 3.0 + 1e-9  # the shaped reference never asks for more than accel_h
     assert max(truth_acc) <= GRAVITY_MPS2 * math.tan(math.radians(35)) + 1.0  # tilt limit (+ drag)
-    assert max(errors) < 0.05, f"steady velocity error {max(errors):.3f} m/s"
+    # the position-stabilised velocity loop catches up the lag of the drag with a small overshoot
+    assert max(errors) < 0.15, f"velocity error after 5 s {max(errors):.3f} m/s"
+    assert errors[-1] < 0.05, f"velocity error after 10 s {errors[-1]:.3f} m/s"
     assert abs(m.p[2] + 10.0) < 0.1
 
 
 def test_acceleration_tilts_the_nose_down_by_atan_a_over_g():
     m = hover()
     sp = Setpoint(velocity_ned_mps=(8.0, 0.0, NAN), position_ned_m=(NAN, NAN, -10.0))
-    pitches, accels = [], []
+    pitches, accels, speeds = [], [], []
     for _ in range(int(1.5 / DT)):
         m.step(DT, sp)
         pitches.append(float(matrix_to_euler(m.rotation_body_to_ned())[1]))
         accels.append(m.accel[0])
-    # mid-acceleration the vehicle pitches forward (nose down, negative pitch) ~ atan(a/g)
+        speeds.append(m.v[0])
+    # mid-acceleration the vehicle pitches forward (nose down, negative pitch) ~ atan(a/g),
+    # where the thrust's horizontal part also overcomes the drag (0.3 / s * v)
     i = len(pitches) // 2
-    expected = -math.atan2(accels[i] + 0.3 * m.v[0], GRAVITY_MPS2)  # thrust also overcomes drag
+    expected = -math.atan2(accels[i] + 0.3 * speeds[i], GRAVITY_MPS2)
     assert pitches[i] < -0.1
     assert abs(pitches[i] - expected) < math.radians(3)
 
@@ -138,10 +142,10 @@ def test_sqrt_controller_is_odd_monotone_and_never_demands_more_than_the_braking
 # ---- navigation error ------------------------------------------------------------------------------
 
 
-SPEC = NavErrorSpec(sigma=(0.5, 0.5, 0.8, 0.1, 0.1, 0.1, 0.01, 0.01, 0.03), tau_s=(2.0,) * 3 + (0.5,) * 3 + (1.0,) * 3)
+SPEC = NavErrorSpec(sigma=(0.5, 0.5, 0.8, 0.25, 0.25, 0.4, 0.01, 0.01, 0.03), att_tau_s=(1.0, 1.0, 1.0))
 
 
-def test_gauss_markov_error_has_the_stationary_sigma_and_correlation_time():
+def test_navigation_error_has_the_stationary_sigmas_correlation_times_and_consistent_velocity():
     nav = GaussMarkovNavError(SPEC, np.random.default_rng(4))
     dt = 0.02
     samples = []
@@ -150,9 +154,18 @@ def test_gauss_markov_error_has_the_stationary_sigma_and_correlation_time():
         samples.append(nav.e.copy())
     e = np.array(samples)
     ratio = e.std(axis=0) / np.array(SPEC.sigma)
-    assert np.all(np.abs(ratio - 1) < 0.1), ratio
-    lag = int(round(2.0 / dt))  # position components: tau = 2 s -> autocorrelation e^-1
+    assert np.all(np.abs(ratio - 1) < 0.12), ratio
+    # position/velocity: critically damped, w = sigma_v / sigma_p = 0.5 /s -> R(1/w) = 2/e
+    lag = int(round(2.0 / dt))
     r = np.mean(e[:-lag, 0] * e[lag:, 0]) / np.var(e[:, 0])
+    assert abs(r - 2 / math.e) < 0.12
+    # the velocity error is the rate of the position error (and uncorrelated with it at one instant)
+    rate = np.diff(e[:, 0]) / dt
+    assert np.corrcoef(rate, e[1:, 3])[0, 1] > 0.99
+    assert abs(np.corrcoef(e[:, 0], e[:, 3])[0, 1]) < 0.05
+    # attitude: first order, tau = 1 s -> R(tau) = 1/e
+    lag = int(round(1.0 / dt))
+    r = np.mean(e[:-lag, 6] * e[lag:, 6]) / np.var(e[:, 6])
     assert abs(r - math.exp(-1)) < 0.1
 
 
@@ -171,11 +184,13 @@ def test_nees_of_the_error_against_the_reported_covariance_is_chi_square_9():
 
 def test_nav_error_spec_rejects_bad_values():
     with pytest.raises(ValueError, match="sigma\\[2\\]"):
-        NavErrorSpec(sigma=(0.5, 0.5, -1.0) + (0.1,) * 6, tau_s=(1.0,) * 9)
-    with pytest.raises(ValueError, match="tau_s\\[0\\]"):
-        NavErrorSpec(sigma=(0.5,) * 9, tau_s=(0.0,) + (1.0,) * 8)
+        NavErrorSpec(sigma=(0.5, 0.5, -1.0) + (0.1,) * 6)
+    with pytest.raises(ValueError, match="att_tau_s\\[0\\]"):
+        NavErrorSpec(sigma=(0.5,) * 9, att_tau_s=(0.0, 1.0, 1.0))
     with pytest.raises(ValueError, match="9 sigmas"):
-        NavErrorSpec(sigma=(0.5,) * 3, tau_s=(1.0,) * 3)
+        NavErrorSpec(sigma=(0.5,) * 3)
+    with pytest.raises(ValueError, match="rate of the position error"):
+        NavErrorSpec(sigma=(0.0, 0.5, 0.5) + (0.1,) * 6)
 
 
 # ---- stream schedule ---------------------------------------------------------------------------------
@@ -249,16 +264,15 @@ def test_same_seed_and_commands_give_the_same_flight_and_another_seed_another_er
         ap = ArduPilotCopter(sim, seed=seed)
         ap.run_for(1.0)
         runs.append(_fly_guided(ap, _Link(), 5.0))
-    assert runs[0] == runs[0] and all(
-        p0 == p1 and np.array_equal(e0, e1) for (p0, e0), (p1, e1) in zip(runs[0], runs[1]))
+    assert len(runs[0]) == len(runs[1]) == 50
+    assert all(p0 == p1 and np.array_equal(e0, e1) for (p0, e0), (p1, e1) in zip(runs[0], runs[1]))
     assert not all(np.array_equal(e0, e2) for (_, e0), (_, e2) in zip(runs[0], runs[2]))
 
 
 def test_ardupilot_gps_accuracies_cover_the_position_error_and_test_ratios_stay_small():
-    sim = replace(SimConfig(), origin_delay_s=0.5, nav_pos_tau_s=1.0)
+    sim = replace(SimConfig(), origin_delay_s=0.5, nav_vel_sigma_mps=0.5)  # w = 1 /s: decorrelates in seconds
     ap = ArduPilotCopter(sim, seed=11)
     ap.run_for(1.0)
-    link = _Link()
     nees, ratios = [], []
     for _ in range(1500):
         ap.run_for(0.2)
@@ -276,7 +290,6 @@ def test_ardupilot_gps_accuracies_cover_the_position_error_and_test_ratios_stay_
     # GPS accuracy includes the receiver's white noise, so it is honest and slightly conservative
     assert 1.8 < mean < 3.3, mean
     assert np.quantile(ratios, 0.95) < 0.5
-    assert link.schedule.earliest_due_s == math.inf
 
 
 def test_ardupilot_refuses_guided_and_arming_without_a_position_estimate():

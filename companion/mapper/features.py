@@ -105,66 +105,63 @@ def _window_max(a: np.ndarray, margin: int) -> np.ndarray:
     return out.reshape(-1).astype(np.int64)
 
 
-def _first_nonzero(lines: np.ndarray, none: int) -> np.ndarray:
-    """Index of the first non-zero pixel of each row of ``lines (k, n)``; ``none`` if all zero."""
-    nz = lines != 0
-    return np.where(nz.any(axis=1), nz.argmax(axis=1), none)
-
-
-def black_border_valid(gray: np.ndarray, margin: int, out: np.ndarray | None = None) -> np.ndarray | None:
-    """Valid-pixel mask (``uint8 (H, W)``, non-zero = usable) excluding black (value 0) borders,
-    or ``None`` if the frame has no border that reaches past the plain edge margin.
+def black_border_depths(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Depth of the black (value 0) border seen from each side of the image, per line:
+    ``left (H,)``, ``right (H,)``, ``top (W,)``, ``bottom (W,)`` (0 = no border on that line), or
+    ``None`` when no edge pixel is black.
 
     A black border is a zero pixel reachable from the image edge along its row or its column
-    through zero pixels only (undistorted frames, fisheye circles, letterboxing). Black pixels
-    inside the picture (a shadow, a dark window) are texture, not border, and are kept. A pixel
-    is valid when no border pixel lies in the ``(2 margin + 1)^2`` box around it. In row ``y``
-    the border is ``x < left[y]`` or ``x > right[y]`` (first and last non-zero column), in
-    column ``x`` it is ``y < top[x]`` or ``y > bottom[x]``, so the test reduces to sliding
-    maxima of four 1-D border depths.
+    through zero pixels only (undistorted frames, fisheye circles, letterboxing): in row ``y``
+    the pixels ``x < left[y]`` and ``x > W - 1 - right[y]``, in column ``x`` the pixels
+    ``y < top[x]`` and ``y > H - 1 - bottom[x]``. Black pixels inside the picture (a shadow, a
+    dark window) are texture, not border.
     """
     H, W = gray.shape
     if gray[0].all() and gray[-1].all() and gray[:, 0].all() and gray[:, -1].all():
         return None  # no zero on the image edge: no border to reach (the common case, cheap)
-    rows_l = np.flatnonzero(gray[:, 0] == 0)
-    rows_r = np.flatnonzero(gray[:, -1] == 0)
-    cols_t = np.flatnonzero(gray[0] == 0)
-    cols_b = np.flatnonzero(gray[-1] == 0)
-    # Border depth seen from each side, per line (0 = no border on that line), then the
-    # deepest within +-margin lines: the valid interval of a row is [x_lo, x_hi], of a column
-    # [y_lo, y_hi]. Only the lines that start with a zero are scanned.
-    x_lo = np.full(H, margin, np.int64)
-    x_hi = np.full(H, W - 1 - margin, np.int64)
-    y_lo = np.full(W, margin, np.int64)
-    y_hi = np.full(W, H - 1 - margin, np.int64)
-    for lines, n_lines, length, scan, lo, hi in (
-        (rows_l, H, W, lambda i: gray[i], x_lo, None),
-        (rows_r, H, W, lambda i: gray[i, ::-1], None, x_hi),
-        (cols_t, W, H, lambda i: gray[:, i].T, y_lo, None),
-        (cols_b, W, H, lambda i: gray[::-1, i].T, None, y_hi),
-    ):
-        if lines.size == 0:
-            continue
-        depth = np.zeros(n_lines, np.int64)
-        depth[lines] = _first_nonzero(scan(lines), length)
-        deepest = _window_max(depth, margin)
-        if lo is not None:
-            lo += deepest
-        else:
-            hi -= deepest
-    rows = np.flatnonzero((x_lo > margin) | (x_hi < W - 1 - margin))
-    cols = np.flatnonzero((y_lo > margin) | (y_hi < H - 1 - margin))
-    if rows.size + cols.size == 0:
-        return None  # the border is thinner than the edge margin, which is applied anyway
+    # whole-row scans only: a row-wise argmax on a bool array stops at the first True, so
+    # right, top and bottom are read as rows of flipped / transposed copies
+    T = cv2.transpose(gray)
+    return _zeros_before_first_nonzero(gray), _zeros_before_first_nonzero(cv2.flip(gray, 1)), \
+        _zeros_before_first_nonzero(T), _zeros_before_first_nonzero(cv2.flip(T, 1))
+
+
+def _zeros_before_first_nonzero(lines: np.ndarray) -> np.ndarray:
+    """Per row of ``lines (k, n)``, the count of zeros before its first non-zero pixel (``n``
+    for an all-zero row)."""
+    nz = lines != 0
+    first = nz.argmax(axis=1)
+    first[~nz[np.arange(len(first)), first]] = lines.shape[1]
+    return first
+
+
+def black_border_valid(depths, shape: tuple[int, int], margin: int, out: np.ndarray | None = None) -> np.ndarray | None:
+    """Valid-pixel mask (``uint8 (H, W)``, non-zero = usable) outside a black border given by
+    :func:`black_border_depths`, or ``None`` when the border is thinner than the edge margin
+    (which is applied anyway).
+
+    A pixel is valid when no border pixel lies in the ``(2 margin + 1)^2`` box around it, so
+    row ``y`` is valid on ``[x_lo[y], x_hi[y]]`` with ``x_lo`` = the deepest left border within
+    ``+-margin`` rows plus the margin (likewise ``x_hi``, and ``y_lo``, ``y_hi`` per column); the
+    mask is the intersection of the row and column intervals."""
+    H, W = shape
+    left, right, top, bottom = depths
+    x_lo = _window_max(left, margin) + margin
+    x_hi = W - 1 - margin - _window_max(right, margin)
+    y_lo = _window_max(top, margin) + margin
+    y_hi = H - 1 - margin - _window_max(bottom, margin)
+    if x_lo.max() <= margin and x_hi.min() >= W - 1 - margin and y_lo.max() <= margin and y_hi.min() >= H - 1 - margin:
+        return None
     if out is None:
         out = np.empty((H, W), np.uint8)
-    out.fill(255)
-    if rows.size:
-        xs = np.arange(W)[None, :]
-        out[rows] = (xs >= x_lo[rows, None]) & (xs <= x_hi[rows, None])
-    if cols.size:
-        ys = np.arange(H)[:, None]
-        out[:, cols] &= (ys >= y_lo[None, cols]) & (ys <= y_hi[None, cols])
+    valid = out.view(bool)
+    tmp = np.empty((H, W), bool)
+    xs = np.arange(W, dtype=np.int32)[None, :]
+    ys = np.arange(H, dtype=np.int32)[:, None]
+    np.greater_equal(xs, x_lo.astype(np.int32)[:, None], out=valid)
+    valid &= np.less_equal(xs, x_hi.astype(np.int32)[:, None], out=tmp)
+    valid &= np.greater_equal(ys, y_lo.astype(np.int32)[None, :], out=tmp)
+    valid &= np.less_equal(ys, y_hi.astype(np.int32)[None, :], out=tmp)
     return out
 
 
@@ -189,9 +186,7 @@ def _close_pairs(xy: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
     dst = order[np.arange(src.size) - np.repeat(first - start, count)]
     keep = src < dst
     src, dst = src[keep], dst[keep]
-    dx = x[src] - x[dst]
-    dy = y[src] - y[dst]
-    close = dx * dx + dy * dy < d * d
+    close = np.hypot(x[src] - x[dst], y[src] - y[dst]) < d  # hypot: d * d would underflow for tiny d
     return src[close], dst[close]
 
 
@@ -328,13 +323,20 @@ class HarrisDetector:
         self._response = np.empty(shape, np.float32)
         self._dilated = np.empty(shape, np.float32)
         self._border_valid = np.empty(shape, np.uint8)
+        self._border_depths: tuple[np.ndarray, ...] | None = None  # last black border seen
+        self._border_mask: np.ndarray | None = None
         # The candidate mask lives in a buffer padded to whole 8-byte words so that its non-zero
         # pixels can be found word by word (candidates are sparse).
         n = self.height * self.width
         self._words = np.zeros((n + 7) // 8, np.uint64)
         self._cand = self._words.view(np.uint8)[:n].reshape(shape)
         self._kernel3 = np.ones((3, 3), np.uint8)
-        self._static_valid = None if mask is None else _erode(_as_mask(mask, shape), self.margin)
+        self._static_valid = None
+        if mask is not None:
+            valid = _erode(_as_mask(mask, shape), self.margin)
+            m = self.margin  # the edge margin too, so that the frame's best response is a valid one
+            valid[:m], valid[self.height - m :], valid[:, :m], valid[:, self.width - m :] = 0, 0, 0, 0
+            self._static_valid = valid
         # Image-edge margin for the sub-pixel positions: in_image semantics (u >= border_px).
         self._edge = float(border_px)
         self.n_candidates = 0  # local maxima above threshold in the last frame (diagnostics)
@@ -348,12 +350,18 @@ class HarrisDetector:
     def valid_region(self, gray: np.ndarray) -> np.ndarray | None:
         """Valid-pixel mask (non-zero = usable) from the static mask and any black border, or
         ``None`` when only the image-edge margin applies."""
-        border = black_border_valid(gray, self.margin, out=self._border_valid)
-        if border is None:
+        depths = black_border_depths(gray)
+        if depths is None:
             return self._static_valid
-        if self._static_valid is None:
-            return border
-        return cv2.bitwise_and(border, self._static_valid, dst=border)
+        # An undistorted stream has the same border in every frame: reuse the last mask.
+        if self._border_depths is not None and all(np.array_equal(a, b) for a, b in zip(depths, self._border_depths)):
+            return self._border_mask
+        border = black_border_valid(depths, (self.height, self.width), self.margin, out=self._border_valid)
+        if border is not None and self._static_valid is not None:
+            border = cv2.bitwise_and(border, self._static_valid, dst=border)
+        self._border_depths = depths
+        self._border_mask = self._static_valid if border is None else border
+        return self._border_mask
 
     def candidate_maxima(self, R: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Integer ``xy (K, 2)`` and ``score (K,)`` of the 3x3 local maxima of ``R`` above the
@@ -378,10 +386,11 @@ class HarrisDetector:
         cand[H - m :] = 0
         cand[:, :m] = 0
         cand[:, W - m :] = 0
-        # non-zero pixels, one 8-byte word at a time: cheap because candidates are sparse
+        # Non-zero pixels: first the non-zero 8-byte words, then the bytes inside them (1-D
+        # bool nonzero throughout: NumPy's fast path; candidates are a small fraction).
         words = (self._words != 0).nonzero()[0]
-        r, c = np.nonzero(self._words.view(np.uint8).reshape(-1, 8)[words])
-        flat = words[r] * 8 + c
+        inside = (self._words[words].view(np.uint8) != 0).nonzero()[0]
+        flat = words[inside >> 3] * 8 + (inside & 7)
         ys, xs = np.divmod(flat, W)
         return np.column_stack([xs, ys]), R.reshape(-1)[flat].astype(np.float64)
 

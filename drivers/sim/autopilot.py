@@ -182,6 +182,7 @@ class SimAutopilot:
         self.outbox: list[tuple[str | None, object]] = []
         self.params: dict[str, Param] = {p.name: p for p in self.default_params()}
         self.unhandled: collections.Counter = collections.Counter()
+        self.after_ack: list = []
         self.last_gps_s = -math.inf
 
     # ------------------------------------------------------------------------------------------
@@ -266,6 +267,9 @@ class SimAutopilot:
 
     def current_setpoint(self) -> Setpoint:
         b = self.behaviour
+        if self.landed and (b is Behaviour.HOLD or (b is Behaviour.EXTERNAL and not self.EXTERNAL_CAN_TAKE_OFF)):
+            # on the ground, holding means staying there: no climb however the estimate wanders
+            return Setpoint(velocity_ned_mps=(0.0, 0.0, 0.0), yaw_rad=self.hold_yaw)
         if b is Behaviour.EXTERNAL:
             sp = self.external_setpoint()
             if sp is not None and (self.EXTERNAL_CAN_TAKE_OFF or not self.landed):
@@ -438,11 +442,16 @@ class SimAutopilot:
     def _command(self, msg, link, command: int, params: list[float], frame) -> None:
         handler = getattr(self, "cmd_" + mav.enums["MAV_CMD"][command].name[8:].lower(), None) \
             if command in mav.enums["MAV_CMD"] else None
+        self.after_ack = []
         if handler is None:
             result = mav.MAV_RESULT_UNSUPPORTED
         else:
             result = handler(params, link, frame)
         self.send(link.name, mav.MAVLink_command_ack_message(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        # messages a command asked for follow its ACK (ArduPilot defers them to the next send slot)
+        for m in self.after_ack:
+            self.send(link.name, m)
+        self.after_ack = []
 
     # ---- stream control -----------------------------------------------------------------------
 
@@ -496,14 +505,14 @@ class SimAutopilot:
         msg = self.build(msg_id)
         if msg is None:
             return mav.MAV_RESULT_TEMPORARILY_REJECTED  # exists, but not yet (e.g. no home before origin)
-        self.send(link.name, msg)
+        self.after_ack.append(msg)
         return mav.MAV_RESULT_ACCEPTED
 
     def refuse_request(self, msg_id: int) -> int:
         return mav.MAV_RESULT_FAILED
 
     def cmd_request_autopilot_capabilities(self, params, link, frame) -> int:
-        self.send(link.name, self.msg_autopilot_version())
+        self.after_ack.append(self.msg_autopilot_version())
         return mav.MAV_RESULT_ACCEPTED
 
     # ---- setpoints ----------------------------------------------------------------------------

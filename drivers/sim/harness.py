@@ -27,6 +27,7 @@ class SimVehicleProcess:
 
     args: list[str]
     endpoints: dict[str, int] = field(default_factory=dict)
+    command: list[str] = field(default_factory=lambda: [sys.executable, "-m", "companion.cli", "sim"])
     proc: subprocess.Popen | None = None
     stderr_path: str | None = None
 
@@ -34,7 +35,7 @@ class SimVehicleProcess:
         links = sum(a in ("--tcp-listen", "--udp-in", "--udp-out") for a in self.args)
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         self._stderr = open(self.stderr_path, "w") if self.stderr_path else subprocess.DEVNULL
-        self.proc = subprocess.Popen([sys.executable, "-m", "companion.cli", "sim", *self.args], stdout=subprocess.PIPE,
+        self.proc = subprocess.Popen(self.command + list(self.args), stdout=subprocess.PIPE,
                                      stderr=self._stderr, text=True, env=env)
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         lines = []
@@ -88,6 +89,7 @@ class MavClient:
                                                dialect="ardupilotmega", autoreconnect=False)
         self.mav = self.conn.mav
         self.target = (1, 1)
+        self.statustexts: list[str] = []  # every STATUSTEXT seen, whatever recv was waiting for
 
     @classmethod
     def udp_listener(cls) -> "MavClient":
@@ -110,11 +112,42 @@ class MavClient:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return None
-            m = self.conn.recv_match(type=types, blocking=True, timeout=min(remaining, 0.2))
+            m = self.conn.recv_match(blocking=True, timeout=min(remaining, 0.2))
             if m is None or m.get_type() == "BAD_DATA":
+                continue
+            if m.get_type() == "STATUSTEXT" and len(self.statustexts) < 10000:
+                self.statustexts.append(m.text)
+            if types is not None and m.get_type() not in types:
                 continue
             if condition is None or condition(m):
                 return m
+
+    def latest(self, types, max_messages: int = 100000):
+        """Read everything already received (no waiting); the newest message of ``types`` or None.
+
+        For control loops: a client that reads one message per iteration falls behind a sped-up
+        simulation and acts on stale state.
+        """
+        if isinstance(types, str):
+            types = [types]
+        newest = None
+        for _ in range(max_messages):
+            m = self.conn.recv_match(blocking=False)
+            if m is None:
+                break
+            if m.get_type() == "STATUSTEXT" and len(self.statustexts) < 10000:
+                self.statustexts.append(m.text)
+            if m.get_type() in types:
+                newest = m
+        return newest
+
+    def wait_statustext(self, predicate, timeout_s: float = 2.0) -> str | None:
+        """The first STATUSTEXT (already seen or arriving within the timeout) whose text satisfies ``predicate``."""
+        for text in self.statustexts:
+            if predicate(text):
+                return text
+        m = self.recv("STATUSTEXT", timeout_s, lambda m: predicate(m.text))
+        return None if m is None else m.text
 
     def wait_heartbeat(self, timeout_s: float = 5.0):
         hb = self.recv("HEARTBEAT", timeout_s, lambda m: m.get_srcComponent() == 1)

@@ -4,20 +4,27 @@ A real autopilot's estimate is truth plus a slowly wandering error, and its filt
 covariance for it. The simulator reverses that: it injects an error with *known* statistics and
 reports those statistics, so a consumer that trusts the reported covariance is right to.
 
-Model (per component of position N/E/D, velocity N/E/D, attitude N/E/D): a first-order
-Gauss-Markov process
+Position and velocity, per axis: one critically damped second-order Gauss-Markov process, the
+velocity error being the rate of the position error (an EKF's position error is the integral of
+its velocity error; two independent errors would make the vehicle's controller fight a position
+estimate that moves without its velocity estimate saying so):
 
-    e_{k+1} = phi e_k + sqrt(1 - phi^2) sigma w_k,   phi = exp(-dt / tau),   w_k ~ N(0, 1),
+    d e_p = e_v dt,   d e_v = (-w^2 e_p - 2 w e_v) dt + q dW,   w = sigma_v / sigma_p,
+    q^2 = 4 w sigma_v^2   ->   stationary Var(e_p) = sigma_p^2, Var(e_v) = sigma_v^2, Cov = 0.
 
-started from its stationary law ``e_0 ~ N(0, sigma^2)``. Its marginal covariance is then
-``diag(sigma^2)`` at every instant (not only asymptotically), which is what the vehicle reports
-(PX4's ODOMETRY diagonal, ESTIMATOR_STATUS accuracies; ArduPilot's GPS_RAW_INT accuracies). The
-normalised estimation error squared ``e^T P^-1 e`` is therefore chi-square with 9 degrees of
-freedom at every sample, though consecutive samples are correlated over ``tau``.
+It is discretised exactly for any step (``F = exp(A dt)``, ``Q = P - F P F^T`` with ``P`` the
+stationary covariance) and started from its stationary law, so its marginal covariance is
+``diag(sigma^2)`` at every instant, not only asymptotically.
 
-The attitude error is a rotation vector in NED with ``R_true = Exp(e_att) R_est`` (the
-convention of companion.messages.NavState); equal roll and pitch sigmas make the roll/pitch/yaw
-variances PX4 reports the same numbers to first order whatever the heading.
+Attitude (rotation vector in NED, ``R_true = Exp(e_att) R_est`` as in
+companion.messages.NavState): a first-order Gauss-Markov process per axis,
+``e_{k+1} = phi e_k + sqrt(1 - phi^2) sigma w_k``, ``phi = exp(-dt / tau)``. Equal roll and pitch
+sigmas make the roll/pitch/yaw variances PX4 reports the same numbers to first order whatever the
+heading.
+
+What is reported (PX4's ODOMETRY diagonal, ESTIMATOR_STATUS accuracies; ArduPilot's GPS_RAW_INT
+accuracies) is ``diag(sigma^2)``, so the normalised estimation error squared ``e^T P^-1 e`` is
+chi-square with 9 degrees of freedom at every sample (consecutive samples are correlated).
 
 The simulated GPS receiver measures truth plus the position error plus white noise: the
 estimate follows GPS, so the GPS error and the estimate error are mostly the same slow error, and
@@ -41,37 +48,59 @@ ATT = slice(6, 9)
 
 @dataclass(frozen=True, slots=True)
 class NavErrorSpec:
-    """Stationary sigmas and correlation times of the 9 error components.
+    """Stationary sigmas of the 9 error components and the attitude correlation times.
 
-    sigma: (9,) [pos N, E, D (m), vel N, E, D (m/s), att N, E, D (rad)]; tau_s: (9,) seconds.
+    sigma: (9,) [pos N, E, D (m), vel N, E, D (m/s), att N, E, D (rad)].
+    att_tau_s: (3,) seconds. Position/velocity time constants follow from the sigmas
+    (``sigma_p / sigma_v`` per axis).
     """
 
     sigma: tuple[float, ...]
-    tau_s: tuple[float, ...]
+    att_tau_s: tuple[float, float, float] = (10.0, 10.0, 10.0)
 
     def __post_init__(self) -> None:
-        if len(self.sigma) != 9 or len(self.tau_s) != 9:
-            raise ValueError(f"NavErrorSpec needs 9 sigmas and 9 correlation times, got {len(self.sigma)} and {len(self.tau_s)}")
-        for i, (s, t) in enumerate(zip(self.sigma, self.tau_s)):
+        if len(self.sigma) != 9 or len(self.att_tau_s) != 3:
+            raise ValueError(f"NavErrorSpec needs 9 sigmas and 3 attitude correlation times, got {len(self.sigma)} and {len(self.att_tau_s)}")
+        for i, s in enumerate(self.sigma):
             if not (math.isfinite(s) and s >= 0):
                 raise ValueError(f"NavErrorSpec.sigma[{i}] must be finite and >= 0, got {s!r}")
+        for i, t in enumerate(self.att_tau_s):
             if not (math.isfinite(t) and t > 0):
-                raise ValueError(f"NavErrorSpec.tau_s[{i}] must be finite and > 0, got {t!r}")
+                raise ValueError(f"NavErrorSpec.att_tau_s[{i}] must be finite and > 0, got {t!r}")
+        for i in range(3):
+            if self.sigma[3 + i] > 0 and self.sigma[i] == 0:
+                raise ValueError(f"NavErrorSpec: velocity sigma[{3 + i}] > 0 needs a position sigma[{i}] > 0 "
+                                 "(the velocity error is the rate of the position error)")
 
     @classmethod
     def from_config(cls, sim) -> "NavErrorSpec":
         """From a :class:`companion.config.SimConfig`."""
         h, v, vel = sim.nav_pos_sigma_h_m, sim.nav_pos_sigma_v_m, sim.nav_vel_sigma_mps
         tilt, yaw = math.radians(sim.nav_tilt_sigma_deg), math.radians(sim.nav_yaw_sigma_deg)
-        return cls(
-            sigma=(h, h, v, vel, vel, vel, tilt, tilt, yaw),
-            tau_s=(sim.nav_pos_tau_s,) * 3 + (sim.nav_vel_tau_s,) * 3 + (sim.nav_att_tau_s,) * 3,
-        )
+        return cls(sigma=(h, h, v, vel, vel, vel, tilt, tilt, yaw), att_tau_s=(sim.nav_att_tau_s,) * 3)
 
     @property
     def covariance(self) -> np.ndarray:
         """(9, 9) the stationary covariance diag(sigma^2): what the vehicle reports."""
         return np.diag(np.square(self.sigma))
+
+    @property
+    def pos_vel_omega(self) -> np.ndarray:
+        """(3,) natural frequency w = sigma_v / sigma_p of each axis' position/velocity process (0 = frozen)."""
+        s = np.asarray(self.sigma)
+        return np.divide(s[VEL], s[POS], out=np.zeros(3), where=s[POS] > 0)
+
+
+def critically_damped_transition(omega: np.ndarray, dt: float) -> np.ndarray:
+    """exp(A dt) for A = [[0, 1], [-w^2, -2w]]: (3,) omegas -> (3, 2, 2)."""
+    w = np.asarray(omega, float)
+    e = np.exp(-w * dt)
+    F = np.empty(w.shape + (2, 2))
+    F[..., 0, 0] = e * (1 + w * dt)
+    F[..., 0, 1] = e * dt
+    F[..., 1, 0] = -e * w * w * dt
+    F[..., 1, 1] = e * (1 - w * dt)
+    return F
 
 
 class GaussMarkovNavError:
@@ -81,14 +110,35 @@ class GaussMarkovNavError:
         self.spec = spec
         self.rng = rng
         self._sigma = np.asarray(spec.sigma, float)
-        self._tau = np.asarray(spec.tau_s, float)
+        self._tau = np.asarray(spec.att_tau_s, float)
+        self._omega = spec.pos_vel_omega
+        self._cache: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.e = self._sigma * rng.standard_normal(9)
+
+    def _discrete(self, dt: float):
+        """(F (3,2,2), chol(Q) (3,2,2), attitude phi (3,)) for this dt (cached: dt is usually fixed)."""
+        if self._cache is None or self._cache[0] != dt:
+            F = critically_damped_transition(self._omega, dt)
+            P = np.zeros((3, 2, 2))
+            P[:, 0, 0] = self._sigma[POS] ** 2
+            P[:, 1, 1] = self._sigma[VEL] ** 2
+            Q = P - F @ P @ np.swapaxes(F, -1, -2)
+            Q = 0.5 * (Q + np.swapaxes(Q, -1, -2))
+            # Q is PSD; a tiny jitter keeps the Cholesky factor real where a sigma is zero
+            L = np.linalg.cholesky(Q + 1e-18 * np.eye(2))
+            phi = np.exp(-dt / self._tau)
+            self._cache = (dt, F, L, phi)
+        return self._cache[1:]
 
     def step(self, dt: float) -> None:
         if not dt > 0:
             raise ValueError(f"GaussMarkovNavError.step needs dt > 0, got {dt!r}")
-        phi = np.exp(-dt / self._tau)
-        self.e = phi * self.e + np.sqrt(1.0 - phi * phi) * self._sigma * self.rng.standard_normal(9)
+        F, L, phi = self._discrete(dt)
+        w = self.rng.standard_normal(9)
+        pv = np.stack([self.e[POS], self.e[VEL]], axis=-1)  # (3, 2): per axis [e_p, e_v]
+        pv = (F @ pv[..., None])[..., 0] + (L @ w[:6].reshape(3, 2)[..., None])[..., 0]
+        self.e[POS], self.e[VEL] = pv[:, 0], pv[:, 1]
+        self.e[ATT] = phi * self.e[ATT] + np.sqrt(1.0 - phi * phi) * self._sigma[ATT] * w[6:]
 
     @property
     def position_error_m(self) -> np.ndarray:

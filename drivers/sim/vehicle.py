@@ -190,8 +190,9 @@ async def _run(args, sim, home: Home) -> int:
             e.close()
     wall = time.monotonic() - wall0
     sent = sum(l.sent for l in process.links.values())
-    log.info("stopped at t=%.1f s simulated after %.1f s wall (x%.1f), %d messages sent, %d slips, unhandled %s",
-             ap.t_s, wall, ap.t_s / wall if wall > 0 else 0.0, sent, process.slips, dict(ap.unhandled))
+    log.info("stopped at t=%.1f s simulated after %.1f s wall (x%.1f), %d messages sent, %d setpoints received "
+             "(%d ignored), %d slips, unhandled %s", ap.t_s, wall, ap.t_s / wall if wall > 0 else 0.0, sent,
+             ap.setpoints_received, ap.setpoints_ignored, process.slips, dict(ap.unhandled))
     return 0
 
 

@@ -1,0 +1,208 @@
+"""Terrain map error against a reference surface (docs/replay.md, "Reference surface").
+
+The reference is a CSV of points ``x,y,z``: a DSM grid (one point per cell centre) or a point
+cloud. Points are binned into the map's cells (``floor(north / cell)``, ``floor(east / cell)``,
+the terrain grid's own indexing) and reduced per cell to one height (mean, median or max); the
+map is compared on the cells both cover:
+
+    e_k = h_map,k - h_ref,k              (map minus reference, metres, up positive)
+    bias = mean(e),  rmse = sqrt(mean(e^2)),  coverage = cells compared / reference cells
+
+``coverage`` says how much of the reference surface the map holds; ``map_fraction_checked`` how
+much of the map the reference could check. ``within_1m`` (the fraction of compared cells with
+|e| <= 1 m) and the percentiles are robust to the few wild cells that dominate an RMSE.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from companion.terrain.grid import TerrainGrid
+
+Statistic = Literal["mean", "median", "max"]
+_SHIFT = np.int64(1 << 32)
+_BIAS = np.int64(1 << 31)
+
+
+@dataclass(frozen=True, slots=True)
+class CellHeights:
+    """Heights per map cell: global cell indices ``ci`` (north), ``cj`` (east) (K,) int64, height (K,) m
+    (up), and for map cells variance (K,) m^2 and evidence count (K,)."""
+
+    ci: np.ndarray
+    cj: np.ndarray
+    height: np.ndarray
+    variance: np.ndarray | None = None
+    count: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.ci)
+
+    @property
+    def keys(self) -> np.ndarray:
+        return self.ci.astype(np.int64) * _SHIFT + (self.cj.astype(np.int64) + _BIAS)
+
+
+def map_cells(grid: TerrainGrid) -> CellHeights:
+    """Every cell of ``grid`` holding evidence."""
+    ci, cj, h, v, n = [], [], [], [], []
+    for tile in grid.tiles():
+        T = tile.tile_cells
+        ii, jj = np.nonzero(tile.known)
+        ci.append(tile.tx * T + ii)
+        cj.append(tile.ty * T + jj)
+        h.append(tile.height[ii, jj].astype(np.float64))
+        v.append(tile.variance[ii, jj].astype(np.float64))
+        n.append(tile.count[ii, jj].astype(np.int64))
+    if not ci:
+        z = np.zeros(0, np.int64)
+        return CellHeights(z, z.copy(), np.zeros(0), np.zeros(0), z.copy())
+    return CellHeights(np.concatenate(ci).astype(np.int64), np.concatenate(cj).astype(np.int64),
+                       np.concatenate(h), np.concatenate(v), np.concatenate(n))
+
+
+# --------------------------------------------------------------------------------------------
+# Reference surface
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class ReferencePoints:
+    """Points read from a reference CSV: xyz (N, 3) as written in the file, bad_lines skipped."""
+
+    path: Path
+    xyz: np.ndarray
+    bad_lines: int
+    first_problem: str = ""
+
+
+def read_reference_csv(path: str | Path) -> ReferencePoints:
+    """``x,y,z`` per line (comma or whitespace separated); an optional header line, blank lines and
+    ``#`` comments are skipped; malformed or non-finite lines are counted and skipped. A file with
+    no usable point raises ValueError naming it."""
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read reference surface: {exc}") from exc
+    rows: list[tuple[float, float, float]] = []
+    bad, first = 0, ""
+    for line_no, line in enumerate(lines, start=1):
+        text = line.split("#", 1)[0].strip()
+        if not text:
+            continue
+        fields = [f for f in text.replace(",", " ").split()]
+        try:
+            if len(fields) < 3:
+                raise ValueError(f"{len(fields)} fields, expected x,y,z")
+            x, y, z = (float(f) for f in fields[:3])
+            if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+                raise ValueError("not finite")
+        except ValueError as exc:
+            if not rows and bad == 0 and not any(c.isdigit() for c in text):
+                continue  # a header line such as "x,y,z"
+            bad += 1
+            first = first or f"{path}: line {line_no}: {exc}"
+            continue
+        rows.append((x, y, z))
+    if not rows:
+        raise ValueError(f"{path}: no reference point (expected lines 'x,y,z')")
+    return ReferencePoints(path, np.asarray(rows, float), bad, first)
+
+
+def bin_heights(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray, cell_size_m: float,
+                statistic: Statistic = "mean") -> CellHeights:
+    """Reduce points (N,) to one height per cell of size ``cell_size_m``: mean, median or max."""
+    if statistic not in ("mean", "median", "max"):
+        raise ValueError(f"statistic must be mean, median or max, got {statistic!r}")
+    ci = np.floor(np.asarray(north_m, float) / cell_size_m).astype(np.int64)
+    cj = np.floor(np.asarray(east_m, float) / cell_size_m).astype(np.int64)
+    h = np.asarray(height_m, float)
+    keys = ci * _SHIFT + (cj + _BIAS)
+    order = np.lexsort((h, keys))  # by cell, heights ascending inside a cell
+    keys, h = keys[order], h[order]
+    start = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    count = np.diff(np.r_[start, len(keys)])
+    if statistic == "mean":
+        out = np.add.reduceat(h, start) / count if len(h) else np.zeros(0)
+    elif statistic == "max":
+        out = h[start + count - 1]
+    else:
+        lo, hi = start + (count - 1) // 2, start + count // 2
+        out = 0.5 * (h[lo] + h[hi])
+    k = keys[start]
+    cell_i = np.floor_divide(k, _SHIFT)
+    return CellHeights(cell_i, k - cell_i * _SHIFT - _BIAS, out, count=count)
+
+
+def compare(map_: CellHeights, reference: CellHeights) -> dict[str, Any]:
+    """Error statistics of the map against the reference over the cells both hold (see module doc)."""
+    common, i_map, i_ref = np.intersect1d(map_.keys, reference.keys, assume_unique=True, return_indices=True)
+    e = map_.height[i_map] - reference.height[i_ref]
+    n = len(e)
+    out: dict[str, Any] = {
+        "cells_compared": int(n),
+        "cells_reference": int(len(reference)),
+        "cells_mapped": int(len(map_)),
+        "coverage": n / len(reference) if len(reference) else 0.0,
+        "map_fraction_checked": n / len(map_) if len(map_) else 0.0,
+    }
+    if n == 0:
+        return out | {k: None for k in ("rmse_m", "bias_m", "mae_m", "median_abs_m", "p95_abs_m", "max_abs_m", "within_1m")}
+    a = np.abs(e)
+    return out | {
+        "rmse_m": float(np.sqrt(np.mean(e * e))),
+        "bias_m": float(np.mean(e)),
+        "mae_m": float(np.mean(a)),
+        "median_abs_m": float(np.median(a)),
+        "p95_abs_m": float(np.percentile(a, 95)),
+        "max_abs_m": float(a.max()),
+        "within_1m": float(np.mean(a <= 1.0)),
+    }
+
+
+def reference_metrics(grid: TerrainGrid, north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray,
+                      statistic: Statistic = "mean") -> dict[str, Any]:
+    """Bin reference points (already in the map frame: north, east, altitude up) into the grid's
+    cells and compare (:func:`compare`)."""
+    ref = bin_heights(north_m, east_m, height_m, grid.cell_size_m, statistic)
+    return compare(map_cells(grid), ref) | {"statistic": statistic}
+
+
+# --------------------------------------------------------------------------------------------
+# Dense rasters for figures
+# --------------------------------------------------------------------------------------------
+
+
+def dense_heights(cells: CellHeights, cell_size_m: float, max_side: int = 1200,
+                  include_ne: np.ndarray | None = None, margin_cells: int = 2) -> tuple[np.ndarray, float, float, float]:
+    """A dense (rows = north, cols = east) height raster over the cells' bounding box (grown to hold
+    the points ``include_ne`` (M, 2), e.g. the flight path), NaN where unknown. Rasters wider than
+    ``max_side`` are reduced by block means. Returns (heights, north0_m, east0_m, raster cell size)."""
+    ci, cj = cells.ci, cells.cj
+    lo_i, hi_i = (int(ci.min()), int(ci.max())) if len(ci) else (0, 0)
+    lo_j, hi_j = (int(cj.min()), int(cj.max())) if len(cj) else (0, 0)
+    if include_ne is not None and len(include_ne):
+        pi = np.floor(np.asarray(include_ne)[:, 0] / cell_size_m).astype(np.int64)
+        pj = np.floor(np.asarray(include_ne)[:, 1] / cell_size_m).astype(np.int64)
+        if not len(ci):
+            lo_i, hi_i, lo_j, hi_j = int(pi.min()), int(pi.max()), int(pj.min()), int(pj.max())
+        lo_i, hi_i = min(lo_i, int(pi.min())), max(hi_i, int(pi.max()))
+        lo_j, hi_j = min(lo_j, int(pj.min())), max(hi_j, int(pj.max()))
+    lo_i, lo_j, hi_i, hi_j = lo_i - margin_cells, lo_j - margin_cells, hi_i + margin_cells, hi_j + margin_cells
+    k = max(1, math.ceil(max(hi_i - lo_i + 1, hi_j - lo_j + 1) / max_side))
+    rows, cols = math.ceil((hi_i - lo_i + 1) / k), math.ceil((hi_j - lo_j + 1) / k)
+    total = np.zeros(rows * cols)
+    weight = np.zeros(rows * cols)
+    if len(ci):
+        flat = ((ci - lo_i) // k) * cols + (cj - lo_j) // k
+        np.add.at(total, flat, cells.height)
+        np.add.at(weight, flat, 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        heights = np.where(weight > 0, total / weight, np.nan).reshape(rows, cols)
+    return heights, lo_i * cell_size_m, lo_j * cell_size_m, k * cell_size_m

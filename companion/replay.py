@@ -1,0 +1,424 @@
+"""``companion replay DIR``: the mapper over a recording, as fast as possible (docs/replay.md).
+
+Reads any layout :mod:`companion.recordings` knows (the service's own ``--record`` folder, a TUM
+folder, EuRoC MAV), runs the same pipeline as the daemon's mapper worker frame by frame
+(Harris detector -> :class:`Mapper` with the terrain map as depth prior -> :class:`TerrainGrid`),
+and writes to ``--output``:
+
+* ``metrics.json``: frames processed / without navigation / unreadable, mapper rates (frames/s),
+  converged points, cells mapped, and ``reference`` (map error) when ``--reference`` is given;
+* ``terrain_map.png``: the height map with the camera path; ``terrain_error.png`` with a reference;
+* ``terrain.snapshot``: the map itself (``TerrainGrid.load_snapshot`` reads it back).
+
+``--export-tum OUTDIR`` instead converts the recording to the TUM folder form and stops.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import cv2
+import numpy as np
+
+from companion import config as config_mod
+from companion.config import CompanionConfig, ConfigError
+from companion.map_metrics import CellHeights, compare, bin_heights, dense_heights, map_cells, read_reference_csv
+from companion.mapper import Mapper
+from companion.mapper.features import HarrisDetector
+from companion.plots import height_map
+from companion.recordings import (
+    Overrides,
+    Recording,
+    RecordingError,
+    export_tum,
+    open_recording,
+    reason_key,
+    recording_config,
+)
+from companion.terrain.grid import TerrainGrid
+
+METRICS_JSON = "metrics.json"
+MAP_PNG = "terrain_map.png"
+ERROR_PNG = "terrain_error.png"
+SNAPSHOT = "terrain.snapshot"
+
+
+# --------------------------------------------------------------------------------------------
+# Progress
+# --------------------------------------------------------------------------------------------
+
+
+class ProgressBar:
+    """A one-line text bar on a stream (stderr): redrawn in place on a terminal at most every
+    ``interval_s``; elsewhere (a log file, a pipe) a line at every 10 %."""
+
+    def __init__(self, total: int, stream: IO[str] | None = None, interval_s: float = 0.2, width: int = 30):
+        self.total = max(0, int(total))
+        self.stream = stream if stream is not None else sys.stderr
+        self.interval_s = interval_s
+        self.width = width
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._t0 = time.perf_counter()
+        self._last = -math.inf
+        self._last_decile = -1
+
+    def text(self, done: int) -> str:
+        frac = done / self.total if self.total else 1.0
+        filled = int(round(frac * self.width))
+        elapsed = time.perf_counter() - self._t0
+        rate = done / elapsed if elapsed > 0 else 0.0
+        return f"replay [{'#' * filled}{'.' * (self.width - filled)}] {100 * frac:3.0f}% {done}/{self.total} frames {rate:6.1f} frames/s"
+
+    def update(self, done: int) -> None:
+        now = time.perf_counter()
+        if self.tty:
+            if now - self._last >= self.interval_s or done >= self.total:
+                self._last = now
+                self.stream.write("\r" + self.text(done))
+                self.stream.flush()
+            return
+        decile = int(10 * done / self.total) if self.total else 10
+        if decile > self._last_decile:
+            self._last_decile = decile
+            self.stream.write(self.text(done) + "\n")
+            self.stream.flush()
+
+    def close(self, done: int) -> None:
+        self._last = -math.inf
+        self.update(done)
+        if self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+# --------------------------------------------------------------------------------------------
+# The replay
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Reference:
+    """A reference surface in the map frame: north, east, altitude up (N,) each, and where it came from."""
+
+    north_m: np.ndarray
+    east_m: np.ndarray
+    height_m: np.ndarray
+    source: str
+    frame: str
+    bad_lines: int = 0
+    statistic: str = "mean"
+
+
+def load_reference(path: str | Path, recording: Recording, frame: str = "map", statistic: str = "mean") -> Reference:
+    """Read a reference CSV. ``frame="map"``: columns are north, east, altitude up (m) in the map's
+    local frame. ``frame="dataset"``: columns are x, y, z in the recording's own world frame (world
+    units), converted like its poses (:class:`companion.recordings.WorldFrame`; for the service's
+    own recordings that frame is NED, z down)."""
+    ref = read_reference_csv(path)
+    xyz = ref.xyz
+    if frame == "dataset":
+        ned = recording.world.position_to_ned(xyz)
+        north, east, height = ned[:, 0], ned[:, 1], -ned[:, 2]
+    elif frame == "map":
+        north, east, height = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    else:
+        raise ValueError(f"reference frame must be 'map' or 'dataset', got {frame!r}")
+    return Reference(north, east, height, str(path), frame, ref.bad_lines, statistic)
+
+
+@dataclass(slots=True)
+class ReplayResult:
+    metrics: dict[str, Any]
+    grid: TerrainGrid
+    camera_path_ne: np.ndarray
+    outputs: dict[str, Path]
+
+
+def build_mapper(cfg: CompanionConfig, recording: Recording, grid: TerrainGrid, mask: np.ndarray | None = None) -> Mapper:
+    """The daemon's mapper for this recording's camera: Harris detector (black borders and a static
+    mask excluded, ``camera.border_px`` kept from them), terrain map as depth prior."""
+    cam = recording.camera
+    detector = HarrisDetector(cfg.mapper, cam.width, cam.height, border_px=cfg.camera.border_px, mask=mask)
+
+    def depth_prior(origin: np.ndarray, rays: np.ndarray) -> np.ndarray:
+        return grid.ray_range(origin, rays, cfg.mapper.prior_max_range_m)
+
+    return Mapper(cfg.mapper, cam, recording.mount, depth_prior=depth_prior,
+                  default_ground_alt_m=recording.ground_alt_m, detector=detector, border_px=cfg.camera.border_px)
+
+
+def clamp_black(image: np.ndarray, level: int) -> np.ndarray:
+    """Grey levels <= ``level`` set to 0, so that a lossy (JPEG) black border, whose pixels ring a
+    few levels above 0, is recognised as border by the detector. ``level`` 0 leaves the image as is."""
+    if level <= 0:
+        return image
+    return cv2.threshold(image, level, 255, cv2.THRESH_TOZERO)[1]
+
+
+def _count(d: dict[str, int], key: str) -> None:
+    d[key] = d.get(key, 0) + 1
+
+
+def run_replay(
+    recording: Recording,
+    cfg: CompanionConfig,
+    output: str | Path,
+    *,
+    max_frames: int | None = None,
+    reference: Reference | None = None,
+    mask: np.ndarray | None = None,
+    black_level: int = 0,
+    progress: bool | IO[str] = False,
+    config_source: str = "defaults",
+) -> ReplayResult:
+    """Map ``recording`` and write metrics.json, the map figures and the map snapshot to ``output``."""
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    grid = TerrainGrid.from_config(cfg.terrain)
+    mapper = build_mapper(cfg, recording, grid, mask)
+    total = len(recording) if max_frames is None else min(len(recording), max_frames)
+    bar = None
+    if progress:
+        bar = ProgressBar(total, None if progress is True else progress)
+
+    nav_reasons: dict[str, int] = {}
+    image_problems: dict[str, int] = {}
+    refused: dict[str, int] = {}
+    counts = dict(listed=0, processed=0, without_nav=0, unreadable=0, refused=0)
+    sums = dict(measurements=0, matched=0, initialised=0, removed=0, dropped=0, update_rejected=0, converged_points=0,
+                points_inserted=0, points_rejected_invalid=0, points_rejected_outlier=0, prior_fallback=0)
+    path_ne: list[np.ndarray] = []
+    mapper_s = 0.0
+    t_start = time.perf_counter()
+    for sample in recording.samples(limit=max_frames):
+        counts["listed"] += 1
+        if sample.nav is None:
+            counts["without_nav"] += 1
+            _count(nav_reasons, reason_key(sample.nav_problem))
+        elif sample.frame is None:
+            counts["unreadable"] += 1
+            _count(image_problems, sample.image_problem.split(": ", 1)[-1])
+            recording.stats.note(sample.image_problem)
+        else:
+            image = clamp_black(sample.frame.image, black_level)
+            a = time.perf_counter()
+            step = mapper.step(sample.nav, image)
+            stats = grid.insert(step.points)
+            mapper_s += time.perf_counter() - a
+            if step.rejected_reason:
+                counts["refused"] += 1
+                _count(refused, reason_key(step.rejected_reason))
+            else:
+                counts["processed"] += 1
+                p_c, _ = recording.mount.camera_pose(sample.nav.position_ned_m, sample.nav.R_nb)
+                path_ne.append(p_c[:2])
+            sums["measurements"] += step.n_measurements
+            sums["matched"] += step.n_matched
+            sums["initialised"] += step.n_initialised
+            sums["removed"] += step.n_removed
+            sums["dropped"] += step.n_dropped
+            sums["update_rejected"] += step.n_update_rejected
+            sums["prior_fallback"] += step.n_prior_fallback
+            sums["converged_points"] += len(step.points)
+            sums["points_inserted"] += stats.inserted
+            sums["points_rejected_invalid"] += stats.rejected_invalid
+            sums["points_rejected_outlier"] += stats.rejected_outlier
+        if bar is not None:
+            bar.update(counts["listed"])
+    wall_s = time.perf_counter() - t_start
+    if bar is not None:
+        bar.close(counts["listed"])
+
+    cells = map_cells(grid)
+    camera_path = np.asarray(path_ne).reshape(-1, 2)
+    stepped = counts["processed"] + counts["refused"]
+    metrics: dict[str, Any] = {
+        "frames_processed": counts["processed"],
+        "frames_without_nav": counts["without_nav"],
+        "frames_unreadable": counts["unreadable"],
+        "frames_refused": counts["refused"],
+        "frames_listed": counts["listed"],
+        "mapper_fps": stepped / mapper_s if mapper_s > 0 else None,
+        "replay_fps": counts["listed"] / wall_s if wall_s > 0 else None,
+        "wall_s": wall_s,
+        "converged_points": sums["converged_points"],
+        "cells_mapped": len(cells),
+        "map": {
+            "tiles": len(grid),
+            "area_m2": grid.observed_area_m2(),
+            "cell_size_m": grid.cell_size_m,
+            "height_min_m": float(cells.height.min()) if len(cells) else None,
+            "height_max_m": float(cells.height.max()) if len(cells) else None,
+            "memory_bytes": grid.memory_bytes(),
+        },
+        "mapper": sums | {"n_active_end": mapper.db.n_active},
+        "nav_missing_reasons": nav_reasons,
+        "image_problems": image_problems,
+        "refused_reasons": refused,
+        "recording": recording.describe(),
+        "config": {
+            "source": config_source,
+            "parameterisation": cfg.mapper.parameterisation,
+            "max_features": cfg.mapper.max_features,
+            "max_detections": cfg.mapper.max_detections,
+            "border_px": cfg.camera.border_px,
+            "black_level": black_level,
+            "static_mask": mask is not None,
+            "cell_size_m": cfg.terrain.cell_size_m,
+        },
+    }
+    outputs: dict[str, Path] = {}
+    if reference is not None:
+        ref_cells = bin_heights(reference.north_m, reference.east_m, reference.height_m, grid.cell_size_m, reference.statistic)
+        metrics["reference"] = compare(cells, ref_cells) | {
+            "source": reference.source, "frame": reference.frame, "statistic": reference.statistic,
+            "points": int(len(reference.height_m)), "bad_lines": reference.bad_lines,
+        }  # fmt: skip
+        outputs["error_png"] = _error_figure(output / ERROR_PNG, cells, ref_cells, grid.cell_size_m, camera_path, metrics["reference"])
+
+    outputs["map_png"] = _map_figure(output / MAP_PNG, cells, grid.cell_size_m, camera_path, recording, metrics)
+    grid.save_snapshot(output / SNAPSHOT)
+    outputs["snapshot"] = output / SNAPSHOT
+    metrics["outputs"] = {k: str(v) for k, v in outputs.items()}
+    path = output / METRICS_JSON
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(metrics, indent=2, default=_json_default) + "\n")
+    tmp.replace(path)
+    outputs["metrics"] = path
+    return ReplayResult(metrics, grid, camera_path, outputs)
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _map_figure(path: Path, cells: CellHeights, cell_m: float, camera_path: np.ndarray, recording: Recording,
+                metrics: dict[str, Any]) -> Path:
+    """The height map, north up, with the camera path. The colour range is the 1st-99th percentile
+    of the cell heights (a few wild cells would otherwise flatten every other colour); cells
+    beyond it take the end colours."""
+    heights, n0, e0, c = dense_heights(cells, cell_m, include_ne=camera_path)
+    lo, hi = (np.percentile(cells.height, [1, 99]) if len(cells) else (None, None))
+    title = f"replay {recording.kind} {Path(recording.path).name}: {len(cells)} cells, {metrics['frames_processed']} frames"
+    return height_map(path, heights, n0, e0, c, title, paths=[(camera_path, "camera path", (40, 40, 220))],
+                      vmin=None if lo is None else float(lo), vmax=None if hi is None else float(hi))
+
+
+def _error_figure(path: Path, cells: CellHeights, ref: CellHeights, cell_m: float, camera_path: np.ndarray,
+                  stats: dict[str, Any]) -> Path:
+    _, i_map, i_ref = np.intersect1d(cells.keys, ref.keys, assume_unique=True, return_indices=True)
+    err = CellHeights(cells.ci[i_map], cells.cj[i_map], cells.height[i_map] - ref.height[i_ref])
+    heights, n0, e0, c = dense_heights(err, cell_m, include_ne=camera_path)
+    span = float(np.percentile(np.abs(err.height), 95)) if len(err) else 1.0
+    span = max(span, 0.1)
+    rmse = stats.get("rmse_m")
+    title = f"map - reference (m): RMSE {rmse:.2f} m over {stats['cells_compared']} cells" if rmse is not None else "map - reference: no common cell"
+    return height_map(path, heights, n0, e0, c, title, paths=[(camera_path, "camera path", (40, 40, 220))], vmin=-span, vmax=span)
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------------------------
+
+
+def configure_parser(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recording", metavar="DIR", help="recording folder: companion --record, TUM folder or EuRoC (mav0)")
+    p.add_argument("--output", "-o", metavar="OUT", help="output folder (default ./replay-<name of DIR>)")
+    p.add_argument("--config", metavar="FILE", help="YAML configuration (mapper, terrain, nav, camera.border_px); "
+                   "default: the recording's own (companion) or the built-in defaults")
+    p.add_argument("--format", choices=("auto", "companion", "tum", "euroc"), default="auto", help="recording layout")
+    p.add_argument("--parameterisation", choices=("inverse_depth", "cartesian"), help="override mapper.parameterisation")
+    p.add_argument("--max-frames", type=int, metavar="N", help="stop after the first N listed frames")
+    p.add_argument("--reference", metavar="FILE.csv", help="reference surface (DSM grid or point cloud, x,y,z per line)")
+    p.add_argument("--reference-frame", choices=("map", "dataset"), default="map",
+                   help="map: north,east,altitude-up in the map frame; dataset: x,y,z in the recording's world frame")
+    p.add_argument("--reference-stat", choices=("mean", "median", "max"), default="mean",
+                   help="how reference points in one map cell become its height")
+    p.add_argument("--pose-sigma-m", type=float, metavar="M", help="pose position sigma (TUM/EuRoC; overrides metadata)")
+    p.add_argument("--pose-sigma-deg", type=float, metavar="DEG", help="pose attitude sigma (TUM/EuRoC; overrides metadata)")
+    p.add_argument("--ground-alt-m", type=float, metavar="M", help="ground altitude assumed before the map knows")
+    p.add_argument("--mask", metavar="FILE.png", help="static mask image (non-zero = usable pixels)")
+    p.add_argument("--black-level", type=int, default=0, metavar="L",
+                   help="grey levels <= L count as black border (JPEG borders; default 0)")
+    p.add_argument("--export-tum", metavar="OUTDIR", help="convert the recording to the TUM folder form and stop")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+
+
+def _fail(message: str) -> int:
+    print(f"companion replay: {message}", file=sys.stderr)
+    return 2
+
+
+def main(args: argparse.Namespace) -> int:
+    path = Path(args.recording).expanduser()
+    if args.max_frames is not None and args.max_frames < 1:
+        return _fail(f"--max-frames must be at least 1, got {args.max_frames}")
+    if not 0 <= args.black_level <= 254:
+        return _fail(f"--black-level must be in 0..254, got {args.black_level}")
+    for name in ("pose_sigma_m", "pose_sigma_deg"):
+        value = getattr(args, name)
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            return _fail(f"--{name.replace('_', '-')} must be a finite number >= 0, got {value}")
+    try:
+        if args.config:
+            cfg, source = config_mod.load_config(args.config), str(args.config)
+        else:
+            own = recording_config(path) if path.is_dir() else None
+            cfg, source = (own, f"{path}/meta.yaml") if own is not None else (CompanionConfig(), "defaults")
+        if args.parameterisation:
+            cfg = config_mod.replace(cfg, **{"mapper.parameterisation": args.parameterisation})
+        overrides = Overrides(args.pose_sigma_m, args.pose_sigma_deg, args.ground_alt_m)
+        recording = open_recording(path, cfg, kind=args.format, overrides=overrides)
+    except (ConfigError, RecordingError) as exc:
+        return _fail(str(exc))
+
+    if args.export_tum:
+        try:
+            counts = export_tum(recording, args.export_tum, limit=args.max_frames)
+        except (FileExistsError, OSError) as exc:
+            return _fail(str(exc))
+        print(f"exported {counts['written']} frames to {args.export_tum} "
+              f"({counts['without_nav']} without navigation, {counts['missing_image']} missing images left out)")
+        return 0
+
+    try:
+        reference = load_reference(args.reference, recording, args.reference_frame, args.reference_stat) if args.reference else None
+    except ValueError as exc:
+        return _fail(str(exc))
+    mask = None
+    if args.mask:
+        mask = cv2.imread(args.mask, cv2.IMREAD_GRAYSCALE)
+        cam = recording.camera
+        if mask is None:
+            return _fail(f"--mask {args.mask}: cannot be read as an image")
+        if mask.shape != (cam.height, cam.width):
+            return _fail(f"--mask {args.mask}: {mask.shape[1]}x{mask.shape[0]}, the camera is {cam.width}x{cam.height}")
+
+    output = Path(args.output) if args.output else Path.cwd() / f"replay-{path.resolve().name}"
+    result = run_replay(recording, cfg, output, max_frames=args.max_frames, reference=reference, mask=mask,
+                        black_level=args.black_level, progress=not args.no_progress, config_source=source)
+    m = result.metrics
+    fps = m["mapper_fps"]
+    print(f"{m['frames_processed']} frames mapped ({m['frames_without_nav']} without navigation, "
+          f"{m['frames_unreadable']} unreadable, {m['frames_refused']} refused); "
+          f"mapper {fps:.1f} frames/s" if fps else "no frame mapped")
+    print(f"{m['converged_points']} converged points, {m['cells_mapped']} cells mapped -> {output}")
+    ref = m.get("reference")
+    if ref is not None:
+        if ref["rmse_m"] is None:
+            print(f"reference: no cell in common ({ref['cells_reference']} reference cells)")
+        else:
+            print(f"reference: RMSE {ref['rmse_m']:.3f} m, bias {ref['bias_m']:+.3f} m over {ref['cells_compared']} cells "
+                  f"(coverage {100 * ref['coverage']:.1f} %)")
+    return 0
