@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import AvoidanceConfig
-from companion.terrain.grid import Corridor, TerrainGrid
+from companion.terrain.grid import TerrainGrid
 
 
 def time_to_go(along_m: np.ndarray, cross_m: np.ndarray, radius_m: float, speed_mps: float) -> np.ndarray:
@@ -57,33 +57,32 @@ def minimum_climb_rate(gain_m: np.ndarray, dt: np.ndarray, accel: float, max_cli
       boundary but falls to zero as ``dt -> 0``, which would stop a vehicle still below the
       restriction from climbing when it is over the obstacle.
     """
-    h = np.asarray(gain_m, dtype=np.float64)
-    dt = np.asarray(dt, dtype=np.float64)
+    h, dt = np.broadcast_arrays(np.asarray(gain_m, dtype=np.float64), np.asarray(dt, dtype=np.float64))
     a = float(accel)
-    out = np.full(np.broadcast(h, dt).shape, -np.inf)
-    fin = np.isfinite(dt)
-    if not fin.any():
-        return out
-    h, t = np.broadcast_to(h, out.shape)[fin], np.broadcast_to(dt, out.shape)[fin]
+    never = ~np.isfinite(dt)
+    t = np.where(never, 0.0, dt)
     s = a * t
     reach = s * s / (2.0 * a)
-    w = np.empty_like(h)
-    above = h <= -reach
-    w[above] = -np.sqrt(-2.0 * a * h[above])
-    sat = h > reach
-    w[sat] = np.sqrt(2.0 * a * h[sat])
-    mid = ~above & ~sat
-    wb = s[mid] - np.sqrt(np.maximum(2.0 * s[mid] ** 2 - 4.0 * a * h[mid], 0.0))
-    capped = 0.5 * (s[mid] + wb) > max_climb
+    # All three branches on the whole batch, then pick: fewer passes than masked assignment.
+    w = np.where(
+        h <= -reach,
+        -np.sqrt(np.maximum(-2.0 * a * h, 0.0)),  # push-over braking curve
+        np.where(
+            h > reach,
+            np.sqrt(np.maximum(2.0 * a * h, 0.0)),  # saturated: climb that stops at the restriction
+            s - np.sqrt(np.maximum(2.0 * s * s - 4.0 * a * h, 0.0)),  # eq. 19, bang-bang
+        ),
+    )
+    capped = (np.abs(h) <= reach) & (0.5 * (s + w) > max_climb)
     if capped.any():
         W = max_climb
-        disc = 2.0 * a * (W * t[mid][capped] - h[mid][capped]) - W * W
-        wt = np.where(disc >= 0.0, W - np.sqrt(np.maximum(disc, 0.0)), np.sqrt(2.0 * a * np.maximum(h[mid][capped], 0.0)))
-        # Beyond the trapezoid's reach the climb is saturated: the limit (or the stopping climb).
-        wb[capped] = np.where(disc >= 0.0, wt, np.maximum(wt, W))
-    w[mid] = wb
-    out[fin] = w
-    return out
+        hc, tc = h[capped], t[capped]
+        disc = 2.0 * a * (W * tc - hc) - W * W
+        # Accelerate to the limit, cruise, brake; beyond its reach the climb is saturated.
+        w[capped] = np.where(disc >= 0.0, W - np.sqrt(np.maximum(disc, 0.0)),
+                             np.maximum(np.sqrt(2.0 * a * np.maximum(hc, 0.0)), W))
+    w[never] = -np.inf
+    return w
 
 
 def nominal_climb_rate(error_m: float, accel: float, time_constant_s: float) -> float:
@@ -207,7 +206,7 @@ class PullUpLaw:
             limiting_cell_ne=(float(north[idx]), float(east[idx])),
             limiting_height_m=h_i,
             time_to_go_s=dt_i,
-            required_alt_m=float(height_restriction(np.array(h_i), cfg.clearance_m, a, np.array(dt_i))),
+            required_alt_m=h_i + cfg.clearance_m - 0.5 * a * dt_i * dt_i,  # eq. 18
             engaged=True,
             unknown_cells_ahead=unknown_left,
         )

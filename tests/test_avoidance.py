@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -268,3 +269,25 @@ def test_unmapped_cells_are_not_ground_at_zero():
 def test_bad_state_is_refused():
     with pytest.raises(ValueError, match="finite"):
         PullUpLaw(CFG).command([0, np.nan, -10.0], [5, 0, 0], TerrainGrid())
+
+
+def test_command_time(capsys):
+    """Figure for issue 7 (generous bound: catches pathologies, not a benchmark)."""
+    rng = np.random.default_rng(0)
+    grid = TerrainGrid()
+    n, e = np.meshgrid(np.arange(-50, 200) + 0.5, np.arange(-60, 60) + 0.5, indexing="ij")
+    pos = np.c_[n.ravel(), e.ravel(), -rng.uniform(0, 5, n.size)]
+    grid.insert(TerrainPoints(0.0, pos, np.tile(np.eye(3) * 1e-2, (len(pos), 1, 1))))
+    law = PullUpLaw(AvoidanceConfig(lookahead_m=100.0, miss_distance_m=5.0))
+    times = {}
+    for name, vel in (("along north", [6.0, 0, 0]), ("diagonal", [4.2, 4.2, 0])):
+        t = []
+        for _ in range(50):
+            t0 = time.perf_counter()
+            law.command([0, 0.3, -15.0], vel, grid)
+            t.append(time.perf_counter() - t0)
+        times[name] = np.median(t) * 1e3
+    with capsys.disabled():
+        print("\nPullUpLaw.command, 100 m look-ahead, miss 5 m: "
+              + ", ".join(f"{k} {v:.3f} ms" for k, v in times.items()))
+    assert max(times.values()) < 10.0

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Iterator
 
 import numpy as np
 
@@ -349,7 +349,7 @@ class TerrainGrid:
         rows = np.arange(np.floor((lo_m - w) / c), np.floor((hi_m + w) / c) + 1, dtype=np.int64)
         x = (rows + 0.5) * c
         slope = d[minor] / d[major]
-        y_line = o[minor] + (np.clip(x, lo_m, hi_m) - o[major]) * slope
+        y_line = o[minor] + (np.minimum(np.maximum(x, lo_m), hi_m) - o[major]) * slope
         reach = w / abs(d[major])
         j_lo = np.ceil((y_line - reach) / c - 0.5).astype(np.int64)
         j_hi = np.floor((y_line + reach) / c - 0.5).astype(np.int64)
@@ -364,10 +364,11 @@ class TerrainGrid:
         cn, ce = (ci + 0.5) * c, (cj + 0.5) * c
         rn, re = cn - o[0], ce - o[1]
         along = rn * d[0] + re * d[1]
-        s = np.clip(along, 0.0, length)
+        s = np.minimum(np.maximum(along, 0.0), length)
         inside = (rn - s * d[0]) ** 2 + (re - s * d[1]) ** 2 <= w * w
-        order = np.argsort(along[inside], kind="stable")
-        ci, cj, cn, ce, along = ci[inside][order], cj[inside][order], cn[inside][order], ce[inside][order], along[inside][order]
+        keep = np.flatnonzero(inside)
+        keep = keep[np.argsort(along[keep], kind="stable")]
+        ci, cj, cn, ce, along = ci[keep], cj[keep], cn[keep], ce[keep], along[keep]
         cross = np.abs((cn - o[0]) * d[1] - (ce - o[1]) * d[0])
         h, v, cnt = self._gather(ci, cj)
         return Corridor(cn, ce, along, cross, h, v, cnt)
@@ -378,7 +379,9 @@ class TerrainGrid:
 
         The ray is marched at half a cell only through the altitude band that holds known terrain
         (a conservative [min, max] of every known height), and the crossing is interpolated
-        linearly between the last sample above the terrain and the first at or below it.
+        linearly between the last sample above the terrain and the first at or below it. A ray
+        that leaves the band downwards over unmapped ground gets NaN: where it met the ground is
+        not known, and a far "hit" on mapped cells beyond would be a wrong prior.
         """
         o = np.asarray(origin_ned, dtype=np.float64).reshape(3)
         rays = np.asarray(rays_ned, dtype=np.float64).reshape(-1, 3)

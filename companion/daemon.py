@@ -1,0 +1,561 @@
+"""The service: ``companion run``. One asyncio TaskGroup wires the parts together.
+
+```
+autopilot --MAVLink--> AutopilotLink --NavState--> nav buffer
+camera ----Frame-----> camera task --drop-oldest queue--> mapper worker thread
+mapper worker: nav = buffer.at(frame.t) -> Mapper.step -> converged points -> TerrainGrid
+control loop (fixed rate, and at once after each map update): PullUpLaw + guidance -> setpoint
+publisher: changed tiles -> Zenoh;  status (1 Hz) -> Zenoh, systemd STATUS, log
+snapshots: TerrainGrid -> persistence.directory/terrain.snapshot (atomic), loaded on start
+```
+
+The mapper is CPU work; it runs in one worker thread owned by the daemon (NumPy and OpenCV
+release the GIL) fed by a bounded queue that drops the oldest frame, so a slow frame never
+delays the control loop. The grid is shared between that thread and the event loop under one
+lock. SIGTERM or SIGINT ends every task, saves the map and exits within about two seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import collections
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.avoidance import AvoidanceCommand, PullUpLaw
+from companion.clock import Clock
+from companion.config import CompanionConfig, ConfigError, load_config
+from companion.geometry import camera_from_config
+from companion.guidance import WaypointGuidance
+from companion.mapper import Mapper
+from companion.messages import Frame, NavState
+from companion.sdnotify import SystemdNotifier
+from companion.terrain.codec import encode_tile
+from companion.terrain.grid import TerrainGrid
+
+log = logging.getLogger("companion")
+
+SNAPSHOT_NAME = "terrain.snapshot"
+# MAV_SEVERITY values used in STATUSTEXT.
+SEVERITY_WARNING, SEVERITY_NOTICE, SEVERITY_INFO = 4, 5, 6
+
+
+class _Shutdown(Exception):
+    """Raised inside the TaskGroup to end every task together."""
+
+
+@dataclass(slots=True)
+class Percentiles:
+    """A bounded window of samples with p50 / p99 (no allocation per sample)."""
+
+    maxlen: int = 2000
+    values: collections.deque = field(default_factory=collections.deque)
+
+    def add(self, v: float) -> None:
+        if len(self.values) >= self.maxlen:
+            self.values.popleft()
+        self.values.append(v)
+
+    def summary(self, scale: float = 1.0) -> dict[str, float | int | None]:
+        if not self.values:
+            return {"n": 0, "p50": None, "p99": None, "max": None}
+        a = np.fromiter(self.values, float) * scale
+        return {"n": int(a.size), "p50": round(float(np.percentile(a, 50)), 3),
+                "p99": round(float(np.percentile(a, 99)), 3), "max": round(float(a.max()), 3)}
+
+
+class FrameQueue:
+    """Bounded queue between the camera task and the mapper thread that drops the oldest frame."""
+
+    def __init__(self, maxlen: int = 2):
+        self._frames: collections.deque[Frame] = collections.deque(maxlen=maxlen)
+        self._cond = threading.Condition()
+        self.dropped = 0
+        self.closed = False
+
+    def put(self, frame: Frame) -> None:
+        with self._cond:
+            if len(self._frames) == self._frames.maxlen:
+                self.dropped += 1
+            self._frames.append(frame)
+            self._cond.notify()
+
+    def get(self, timeout_s: float) -> Frame | None:
+        with self._cond:
+            if not self._frames and not self.closed:
+                self._cond.wait(timeout_s)
+            return self._frames.popleft() if self._frames else None
+
+    def close(self) -> None:
+        with self._cond:
+            self.closed = True
+            self._cond.notify_all()
+
+
+class Daemon:
+    """The running service. Build it from a validated config, then ``await run()``."""
+
+    def __init__(self, cfg: CompanionConfig, *, record_dir: str | None = None, clock: Clock | None = None):
+        from drivers.autopilot import AutopilotLink  # drivers import companion, not the reverse at import time
+
+        if cfg.control.commanding_enabled and len(cfg.control.waypoints_ne_m) < 2:
+            raise ConfigError(
+                "'control.waypoints_ne_m' needs at least two waypoints when 'control.commanding_enabled' is true: "
+                "the service owns the whole velocity setpoint in GUIDED/OFFBOARD and must know where to fly"
+            )
+        self.cfg = cfg
+        self.clock = clock or Clock(cfg.sim.speedup)
+        self.link = AutopilotLink(cfg, self.clock)
+        self.camera_model, self.mount = camera_from_config(cfg.camera)
+        self.snapshot_path = Path(cfg.persistence.directory) / SNAPSHOT_NAME
+        self.grid = self._load_map()
+        self.grid_lock = threading.Lock()
+        self.mapper = Mapper(
+            cfg.mapper, self.camera_model, self.mount, depth_prior=self._depth_prior,
+            default_ground_alt_m=cfg.terrain.default_ground_alt_m, border_px=cfg.camera.border_px,
+        )
+        self.law = PullUpLaw(cfg.avoidance)
+        self.guidance = (
+            WaypointGuidance(cfg.control.waypoints_ne_m, cfg.control.cruise_speed_mps)
+            if len(cfg.control.waypoints_ne_m) >= 2 else None
+        )
+        self.notifier = SystemdNotifier()
+        self.record_dir = record_dir
+        self.frames = FrameQueue(maxlen=2)
+        self.camera: Any = None
+        self.bus: Any = None
+        self.recorder: Any = None
+        self._stop = asyncio.Event()
+        self._map_updated = asyncio.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._mapper_thread: threading.Thread | None = None
+        self._started = self.clock.now()
+        # Counters and figures for the status.
+        self.camera_state = "starting"
+        self.camera_error = ""
+        self.frames_in = 0
+        self.frames_mapped = 0
+        self.frames_no_nav: collections.Counter[str] = collections.Counter()
+        self.mapper_errors = 0
+        self.points_converged = 0
+        self.grid_rejections: collections.Counter[str] = collections.Counter()
+        self.step_ms = Percentiles()
+        self.frame_to_setpoint_ms = Percentiles()
+        self.control_jitter_ms = Percentiles()
+        self.control_ticks = 0
+        self.last_command: AvoidanceCommand | None = None
+        self.last_frame_mapped_t: float | None = None
+        self._latency_frame_t: float | None = None
+        self.command_state = "starting"
+        self.engaged = False
+        self.snapshot_ok_t: float | None = None
+        self.snapshot_error = ""
+        self.snapshot_failures = 0
+        self.lap = 0
+
+    # ---- map and persistence ---------------------------------------------------------------
+
+    def _load_map(self) -> TerrainGrid:
+        path = self.snapshot_path
+        if path.exists():
+            try:
+                grid = TerrainGrid.load_snapshot(path)
+                log.info("map: loaded %d tiles from %s", len(list(grid.keys)), path)
+                return grid
+            except Exception as exc:  # noqa: BLE001 - a bad snapshot must not stop the vehicle
+                bad = path.with_name(path.name + f".bad-{int(time.time())}")
+                try:
+                    path.replace(bad)
+                except OSError:
+                    bad = path
+                log.error("map: snapshot %s unusable (%s); kept as %s, starting with an empty map", path, exc, bad)
+        return TerrainGrid.from_config(self.cfg.terrain)
+
+    def save_snapshot(self) -> bool:
+        """Write the map atomically; never raises (a full or read-only disk is reported, not fatal)."""
+        try:
+            self.snapshot_path.parent.mkdir(parents=True, exist_ok=True)
+            with self.grid_lock:
+                self.grid.save_snapshot(self.snapshot_path)
+        except Exception as exc:  # noqa: BLE001
+            self.snapshot_failures += 1
+            message = f"map snapshot to {self.snapshot_path} failed: {exc}"
+            if message != self.snapshot_error:
+                log.error("%s (the vehicle keeps flying; the map lives in memory)", message)
+            self.snapshot_error = message
+            return False
+        if self.snapshot_error:
+            log.info("map snapshots work again (%s)", self.snapshot_path)
+        self.snapshot_error = ""
+        self.snapshot_ok_t = self.clock.now()
+        return True
+
+    def _depth_prior(self, origin_ned: np.ndarray, rays_ned: np.ndarray) -> np.ndarray:
+        """The mapper's depth prior: the range to the mapped terrain along each ray (NaN if unknown)."""
+        with self.grid_lock:
+            return self.grid.ray_range(origin_ned, rays_ned, self.cfg.mapper.prior_max_range_m)
+
+    def encoded_tiles(self):
+        """Every tile, encoded: the Zenoh queryable's answer to a late-joining ground station."""
+        with self.grid_lock:
+            tiles = list(self.grid.tiles())
+            return [(t.tx, t.ty, encode_tile(t)) for t in tiles]
+
+    # ---- camera and mapper -----------------------------------------------------------------
+
+    def _build_camera(self):
+        if self.cfg.camera.source == "synthetic":
+            from drivers.cameras.synthetic import synthetic_camera_from_config
+
+            return synthetic_camera_from_config(self.cfg, self.clock, self._truth_pose)
+        from drivers.cameras.factory import build_camera
+
+        return build_camera(self.cfg.camera, self.clock)
+
+    def _truth_pose(self):
+        """The simulator's true body pose (SIM_STATE over MAVLink), for the synthetic camera."""
+        truth = self.link.truth_pose()
+        if truth is None:
+            return None
+        return truth.t_s, truth.position_ned_m, truth.quaternion_wxyz
+
+    async def _camera_task(self) -> None:
+        from drivers.cameras.base import CameraError, CorruptInput, EndOfStream
+
+        try:
+            self.camera = await asyncio.to_thread(self._build_camera)
+        except (ConfigError, OSError, ValueError) as exc:
+            self.camera_state, self.camera_error = "failed", str(exc)
+            log.error("camera: cannot start: %s (mapping is off; link, control and publishing go on)", exc)
+            return
+        lost_since: float | None = None
+        while not self._stop.is_set():
+            try:
+                frame = await self.camera.read()
+            except CameraError as exc:
+                if lost_since is None:
+                    lost_since = self.clock.now()
+                    log.warning("camera lost: %s", exc)
+                    self.link.send_statustext(SEVERITY_WARNING, "companion: camera lost")
+                self.camera_state, self.camera_error = "lost", str(exc)
+                await self.clock.sleep(min(1.0, 2.0 / self.cfg.camera.rate_hz))
+                continue
+            except (EndOfStream, CorruptInput) as exc:
+                self.camera_state = "ended" if isinstance(exc, EndOfStream) else "corrupt"
+                self.camera_error = str(exc) or "end of recording"
+                log.warning("camera: %s (%s); link, control and publishing go on", self.camera_state, self.camera_error)
+                self.link.send_statustext(SEVERITY_WARNING, f"companion: camera {self.camera_state}")
+                return
+            if lost_since is not None:
+                log.info("camera back after %.1f s", self.clock.now() - lost_since)
+                self.link.send_statustext(SEVERITY_INFO, "companion: camera back")
+                lost_since = None
+            self.camera_state, self.camera_error = "ok", ""
+            self.frames_in += 1
+            self.frames.put(frame)
+            if self.recorder is not None:
+                self.recorder.submit(frame)
+
+    def _mapper_worker(self) -> None:
+        """Worker thread: frames -> mapper -> terrain grid. One bad frame never stops the others."""
+        while not self.frames.closed:
+            frame = self.frames.get(timeout_s=0.2)
+            if frame is None:
+                continue
+            try:
+                self._map_frame(frame)
+            except Exception:  # noqa: BLE001
+                self.mapper_errors += 1
+                log.exception("mapper: frame %d failed; continuing with the next frame", frame.sequence)
+
+    def _map_frame(self, frame: Frame) -> None:
+        lookup = self.link.nav_buffer.lookup(frame.t_s)
+        nav: NavState | None = lookup.nav
+        if nav is None:
+            self.frames_no_nav[lookup.reason or "no navigation"] += 1
+            return
+        t0 = time.perf_counter()
+        step = self.mapper.step(nav, frame.image)
+        if len(step.points):
+            with self.grid_lock:
+                stats = self.grid.insert(step.points)
+            self.points_converged += len(step.points)
+            for name in ("rejected_invalid", "rejected_outlier"):
+                self.grid_rejections[name] += int(getattr(stats, name, 0))
+        self.step_ms.add((time.perf_counter() - t0) * 1e3)
+        self.frames_mapped += 1
+        self.last_frame_mapped_t = frame.t_s
+        if len(step.points) and self._loop is not None:
+            self._latency_frame_t = frame.t_s
+            self._loop.call_soon_threadsafe(self._map_updated.set)
+
+    # ---- control ---------------------------------------------------------------------------
+
+    async def _control_loop(self) -> None:
+        """Fixed-rate loop; also runs at once when the map changed (frame-to-setpoint latency)."""
+        period = 1.0 / self.cfg.control.rate_hz
+        next_tick = self.clock.now() + period
+        while not self._stop.is_set():
+            timeout = self.clock.wall_seconds(next_tick - self.clock.now())
+            map_changed = False
+            if timeout > 0:
+                try:
+                    await asyncio.wait_for(self._map_updated.wait(), timeout)
+                    map_changed = True
+                except TimeoutError:
+                    pass
+            self._map_updated.clear()
+            now = self.clock.now()
+            if not map_changed or now >= next_tick:
+                self.control_jitter_ms.add(self.clock.wall_seconds(now - next_tick) * 1e3)
+                next_tick += period
+                if now - next_tick > 5 * period:  # fell far behind (suspended?): resynchronise
+                    next_tick = now + period
+                self.control_ticks += 1
+                self.notifier.watchdog()
+            self.control_step(now)
+            if map_changed and self._latency_frame_t is not None:
+                self.frame_to_setpoint_ms.add(self.clock.wall_seconds(self.clock.now() - self._latency_frame_t) * 1e3)
+                self._latency_frame_t = None
+
+    def control_step(self, now: float) -> None:
+        """One evaluation of the law and, when allowed, one setpoint."""
+        nav = self.link.nav_buffer.latest()
+        if nav is None:
+            self.command_state = "no navigation yet"
+            return
+        age = now - nav.t_s
+        if age > self.cfg.nav.stale_after_s:
+            self.command_state = f"navigation stale ({age:.2f} s old)"
+            return
+        with self.grid_lock:
+            cmd = self.law.command(nav.position_ned_m, nav.velocity_ned_mps, self.grid)
+        self.last_command = cmd
+        yaw = None
+        if self.guidance is not None:
+            out = self.guidance.update(nav.position_ned_m[:2])
+            horizontal, yaw = out.velocity_ne_mps, out.yaw_rad
+            self.lap = out.lap
+        else:
+            horizontal = nav.velocity_ned_mps[:2]
+        velocity = np.array([horizontal[0], horizontal[1], -cmd.climb_rate_mps])
+        sent = self.link.send_setpoint(velocity, yaw_rad=yaw)
+        record = self.link.last_setpoint
+        self.command_state = "commanding" if sent else f"advisory ({record.reason if record else 'not sent'})"
+        if cmd.engaged != self.engaged:
+            self.engaged = cmd.engaged
+            if cmd.engaged:
+                text = f"companion: avoid {cmd.limiting_height_m:.0f}m terrain, climb {cmd.climb_rate_mps:.1f}"
+                log.warning("avoidance engaged: terrain %.1f m at %s, climb %.2f m/s (%s)",
+                            cmd.limiting_height_m, cmd.limiting_cell_ne, cmd.climb_rate_mps, self.command_state)
+                self.link.send_statustext(SEVERITY_WARNING, text)
+            else:
+                log.info("avoidance released")
+                self.link.send_statustext(SEVERITY_INFO, "companion: avoidance released")
+        if self.bus is not None:
+            self.bus.publish_avoidance(self.avoidance_body(cmd, velocity, sent))
+
+    def avoidance_body(self, cmd: AvoidanceCommand, velocity: np.ndarray, sent: bool) -> dict[str, Any]:
+        def num(x):
+            return None if x is None or not math.isfinite(x) else round(float(x), 3)
+
+        return {
+            "t_s": round(self.clock.now(), 3),
+            "engaged": cmd.engaged,
+            "climb_rate_mps": num(cmd.climb_rate_mps),
+            "nominal_climb_mps": num(cmd.nominal_climb_mps),
+            "limiting_cell_ne_m": None if cmd.limiting_cell_ne is None else [round(float(c), 2) for c in cmd.limiting_cell_ne],
+            "limiting_height_m": num(cmd.limiting_height_m),
+            "time_to_go_s": num(cmd.time_to_go_s),
+            "required_alt_m": num(cmd.required_alt_m),
+            "unknown_cells_ahead": int(cmd.unknown_cells_ahead),
+            "setpoint_velocity_ned_mps": [round(float(v), 3) for v in velocity],
+            "commanded": bool(sent),
+            "state": self.command_state,
+        }
+
+    # ---- publishing, status, snapshots -----------------------------------------------------
+
+    async def _publish_loop(self) -> None:
+        while not self._stop.is_set():
+            await self.clock.sleep(0.2)
+            if self.bus is None:
+                continue
+            with self.grid_lock:
+                changed = [(k, encode_tile(self.grid.tile(k))) for k in self.grid.pop_dirty()]
+            for (tx, ty), payload in changed:
+                self.bus.publish_tile(tx, ty, payload)
+
+    def status(self) -> dict[str, Any]:
+        now = self.clock.now()
+        link = self.link.status()
+        problems = []
+        if not self.link.connected:
+            problems.append(f"autopilot link {self.link.state}")
+        if self.camera_state != "ok":
+            problems.append(f"camera {self.camera_state}: {self.camera_error}".rstrip(": "))
+        if self.snapshot_error:
+            problems.append(self.snapshot_error)
+        uptime = max(now - self._started, 1e-9)
+        with self.grid_lock:
+            grid = {
+                "tiles": len(list(self.grid.keys)),
+                "observed_area_m2": round(float(self.grid.observed_area_m2()), 1),
+                "memory_bytes": int(self.grid.memory_bytes()),
+                "cell_size_m": self.grid.cell_size_m,
+            }
+        camera_stats = getattr(self.camera, "stats", None)
+        return {
+            "health": "ok" if not problems else "degraded",
+            "problems": problems,
+            "uptime_s": round(uptime, 1),
+            "command": self.command_state,
+            "link": link,
+            "camera": {
+                "state": self.camera_state, "error": self.camera_error, "frames": self.frames_in,
+                "queue_dropped": self.frames.dropped,
+                "stats": camera_stats.as_dict() if hasattr(camera_stats, "as_dict") else None,
+            },
+            "mapper": {
+                "parameterisation": self.cfg.mapper.parameterisation,
+                "frames_mapped": self.frames_mapped, "frames_without_nav": dict(self.frames_no_nav),
+                "errors": self.mapper_errors, "points_converged": self.points_converged,
+                "step_ms": self.step_ms.summary(),
+            },
+            "map": {**grid, "rejections": dict(self.grid_rejections)},
+            "avoidance": None if self.last_command is None else {
+                "engaged": self.last_command.engaged, "climb_rate_mps": round(self.last_command.climb_rate_mps, 3),
+            },
+            "control": {
+                "rate_hz": self.cfg.control.rate_hz, "ticks": self.control_ticks,
+                "jitter_ms": self.control_jitter_ms.summary(),
+                "frame_to_setpoint_ms": self.frame_to_setpoint_ms.summary(),
+                "lap": self.lap,
+            },
+            "snapshots": {"path": str(self.snapshot_path), "failures": self.snapshot_failures,
+                          "last_ok_age_s": None if self.snapshot_ok_t is None else round(now - self.snapshot_ok_t, 1)},
+        }
+
+    async def _status_loop(self) -> None:
+        rate = self.cfg.zenoh.status_rate_hz
+        n = 0
+        while not self._stop.is_set():
+            await self.clock.sleep(1.0 / rate)
+            status = self.status()
+            if self.bus is not None:
+                self.bus.publish_status(status)
+            summary = (f"{status['health']}; link {self.link.state}; camera {self.camera_state}; "
+                       f"mapped {self.frames_mapped} frames; {status['map']['tiles']} tiles; {self.command_state}")
+            self.notifier.status(summary)
+            n += 1
+            if n % max(1, int(10 * rate)) == 0:
+                log.info("status: %s", summary)
+
+    async def _snapshot_loop(self) -> None:
+        while not self._stop.is_set():
+            await self.clock.sleep(self.cfg.persistence.snapshot_interval_s)
+            await asyncio.to_thread(self.save_snapshot)
+
+    # ---- lifecycle -------------------------------------------------------------------------
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    async def _stopper(self) -> None:
+        await self._stop.wait()
+        raise _Shutdown()
+
+    async def run(self) -> None:
+        """Run until :meth:`request_stop` (SIGTERM / SIGINT in :func:`main`)."""
+        self._loop = asyncio.get_running_loop()
+        if self.cfg.zenoh.enabled:
+            from drivers.zenoh_bus import ZenohBus
+
+            self.bus = ZenohBus(self.cfg.zenoh, map_provider=self.encoded_tiles)
+            await asyncio.to_thread(self.bus.open)
+        if self.record_dir:
+            from drivers.cameras.recorder import FrameRecorder
+
+            self.recorder = FrameRecorder.from_config(self.record_dir, self.cfg, self.clock)
+            self.recorder.start()
+            self.link.record_telemetry(self.recorder.telemetry_path)
+        self._mapper_thread = threading.Thread(target=self._mapper_worker, name="mapper", daemon=True)
+        self._mapper_thread.start()
+        self.notifier.ready("starting: waiting for the autopilot")
+        log.info("companion running: link %s, camera %s, mapper %s, commanding %s",
+                 self.cfg.link.connection, self.cfg.camera.source, self.cfg.mapper.parameterisation,
+                 "enabled" if self.cfg.control.commanding_enabled else "off (advisory)")
+        try:
+            async with asyncio.TaskGroup() as tg:
+                tg.create_task(self.link.run(), name="link")
+                tg.create_task(self._camera_task(), name="camera")
+                tg.create_task(self._control_loop(), name="control")
+                tg.create_task(self._publish_loop(), name="publish")
+                tg.create_task(self._status_loop(), name="status")
+                tg.create_task(self._snapshot_loop(), name="snapshots")
+                tg.create_task(self._stopper(), name="stopper")
+        except* _Shutdown:
+            pass
+        finally:
+            await self._shutdown()
+
+    async def _shutdown(self) -> None:
+        self.notifier.stopping()
+        self.frames.close()
+        if self._mapper_thread is not None:
+            await asyncio.to_thread(self._mapper_thread.join, 2.0)
+        saved = await asyncio.to_thread(self.save_snapshot)
+        log.info("map %s at shutdown (%s)", "saved" if saved else "NOT saved", self.snapshot_path)
+        if self.camera is not None:
+            try:
+                await asyncio.wait_for(self.camera.close(), 1.0)
+            except Exception as exc:  # noqa: BLE001
+                log.warning("camera close: %s", exc)
+        if self.recorder is not None:
+            await asyncio.to_thread(self.recorder.close)
+        if self.bus is not None:
+            await asyncio.to_thread(self.bus.close)
+        self.notifier.close()
+
+
+# ---- command line ----------------------------------------------------------------------------
+
+
+def configure_parser(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", required=True, help="YAML configuration (see config/default.yaml)")
+    p.add_argument("--record", metavar="DIR", help="record frames, timestamps and MAVLink telemetry to DIR for replay")
+    p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+
+
+def setup_logging(level: str) -> None:
+    logging.basicConfig(level=getattr(logging, level), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+async def _run(daemon: Daemon) -> None:
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, daemon.request_stop)
+    await daemon.run()
+
+
+def main(args: argparse.Namespace) -> int:
+    setup_logging(args.log_level)
+    try:
+        cfg = load_config(args.config)
+        daemon = Daemon(cfg, record_dir=args.record)
+    except ConfigError as exc:
+        log.error("configuration: %s; refusing to start", exc)
+        return 2
+    asyncio.run(_run(daemon))
+    return 0
