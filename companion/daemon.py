@@ -205,12 +205,6 @@ class Daemon:
         with self.grid_lock:
             return self.grid.ray_range(origin_ned, rays_ned, self.cfg.mapper.prior_max_range_m)
 
-    def encoded_tiles(self):
-        """Every tile, encoded: the Zenoh queryable's answer to a late-joining ground station."""
-        with self.grid_lock:
-            tiles = list(self.grid.tiles())
-            return [(t.tx, t.ty, encode_tile(t)) for t in tiles]
-
     # ---- camera and mapper -----------------------------------------------------------------
 
     def _build_camera(self):
@@ -366,22 +360,23 @@ class Daemon:
             self.bus.publish_avoidance(self.avoidance_body(cmd, velocity, sent))
 
     def avoidance_body(self, cmd: AvoidanceCommand, velocity: np.ndarray, sent: bool) -> dict[str, Any]:
+        """The ``companion.avoidance/1`` payload (docs/zenoh.md): required fields first."""
         def num(x):
             return None if x is None or not math.isfinite(x) else round(float(x), 3)
 
         return {
-            "t_s": round(self.clock.now(), 3),
             "engaged": cmd.engaged,
+            "mode": "commanding" if sent else "advisory",
             "climb_rate_mps": num(cmd.climb_rate_mps),
-            "nominal_climb_mps": num(cmd.nominal_climb_mps),
-            "limiting_cell_ne_m": None if cmd.limiting_cell_ne is None else [round(float(c), 2) for c in cmd.limiting_cell_ne],
+            "restriction_alt_m": num(cmd.required_alt_m),
+            "limiting_cell": None if cmd.limiting_cell_ne is None else [round(float(c), 2) for c in cmd.limiting_cell_ne],
+            "time_to_cell_s": num(cmd.time_to_go_s),
             "limiting_height_m": num(cmd.limiting_height_m),
-            "time_to_go_s": num(cmd.time_to_go_s),
-            "required_alt_m": num(cmd.required_alt_m),
+            "nominal_alt_m": self.cfg.avoidance.nominal_alt_m,
+            "nominal_climb_mps": num(cmd.nominal_climb_mps),
             "unknown_cells_ahead": int(cmd.unknown_cells_ahead),
             "setpoint_velocity_ned_mps": [round(float(v), 3) for v in velocity],
-            "commanded": bool(sent),
-            "state": self.command_state,
+            "reason": self.command_state,
         }
 
     # ---- publishing, status, snapshots -----------------------------------------------------
@@ -481,7 +476,7 @@ class Daemon:
         if self.cfg.zenoh.enabled:
             from drivers.zenoh_bus import ZenohBus
 
-            self.bus = ZenohBus(self.cfg.zenoh, map_provider=self.encoded_tiles)
+            self.bus = ZenohBus(self.cfg.zenoh)  # answers map queries from the tiles it published
             await asyncio.to_thread(self.bus.open)
         if self.record_dir:
             from drivers.cameras.recorder import FrameRecorder

@@ -791,6 +791,7 @@ class TelemetryNav:
         self._pending = None
         for key in ("telemetry_messages", "telemetry_bad", "telemetry_ignored", "nav_states"):
             setattr(self.stats, key, 0)
+        self.stats.nav_rejected = {}
 
     def _next(self) -> tuple[Any, float] | None:
         if self._pending is not None:

@@ -154,6 +154,18 @@ def build_mapper(cfg: CompanionConfig, recording: Recording, grid: TerrainGrid, 
                   default_ground_alt_m=recording.ground_alt_m, detector=detector, border_px=cfg.camera.border_px)
 
 
+JPEG_BLACK_LEVEL = 16  # measured: JPEG (quality 75) rings a black border up to ~10 grey levels near the picture
+LOSSY_SUFFIXES = (".jpg", ".jpeg")
+
+
+def black_level_for(path: Path, black_level: int | None) -> int:
+    """The configured black level, or automatically JPEG_BLACK_LEVEL for lossy (JPEG) files and 0
+    for lossless ones, whose black border is exactly 0."""
+    if black_level is not None:
+        return black_level
+    return JPEG_BLACK_LEVEL if path.suffix.lower() in LOSSY_SUFFIXES else 0
+
+
 def clamp_black(image: np.ndarray, level: int) -> np.ndarray:
     """Grey levels <= ``level`` set to 0, so that a lossy (JPEG) black border, whose pixels ring a
     few levels above 0, is recognised as border by the detector. ``level`` 0 leaves the image as is."""
@@ -174,11 +186,14 @@ def run_replay(
     max_frames: int | None = None,
     reference: Reference | None = None,
     mask: np.ndarray | None = None,
-    black_level: int = 0,
+    black_level: int | None = None,
     progress: bool | IO[str] = False,
     config_source: str = "defaults",
 ) -> ReplayResult:
-    """Map ``recording`` and write metrics.json, the map figures and the map snapshot to ``output``."""
+    """Map ``recording`` and write metrics.json, the map figures and the map snapshot to ``output``.
+
+    ``black_level``: grey levels treated as black border (:func:`clamp_black`); None = automatic
+    per file (:func:`black_level_for`)."""
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
     grid = TerrainGrid.from_config(cfg.terrain)
@@ -207,7 +222,7 @@ def run_replay(
             _count(image_problems, sample.image_problem.split(": ", 1)[-1])
             recording.stats.note(sample.image_problem)
         else:
-            image = clamp_black(sample.frame.image, black_level)
+            image = clamp_black(sample.frame.image, black_level_for(sample.image_path, black_level))
             a = time.perf_counter()
             step = mapper.step(sample.nav, image)
             stats = grid.insert(step.points)
@@ -269,7 +284,7 @@ def run_replay(
             "max_features": cfg.mapper.max_features,
             "max_detections": cfg.mapper.max_detections,
             "border_px": cfg.camera.border_px,
-            "black_level": black_level,
+            "black_level": "auto" if black_level is None else black_level,
             "static_mask": mask is not None,
             "cell_size_m": cfg.terrain.cell_size_m,
         },
@@ -349,8 +364,8 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pose-sigma-deg", type=float, metavar="DEG", help="pose attitude sigma (TUM/EuRoC; overrides metadata)")
     p.add_argument("--ground-alt-m", type=float, metavar="M", help="ground altitude assumed before the map knows")
     p.add_argument("--mask", metavar="FILE.png", help="static mask image (non-zero = usable pixels)")
-    p.add_argument("--black-level", type=int, default=0, metavar="L",
-                   help="grey levels <= L count as black border (JPEG borders; default 0)")
+    p.add_argument("--black-level", type=int, default=None, metavar="L",
+                   help=f"grey levels <= L count as black border (default: {JPEG_BLACK_LEVEL} for JPEG files, 0 otherwise)")
     p.add_argument("--export-tum", metavar="OUTDIR", help="convert the recording to the TUM folder form and stop")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
@@ -364,7 +379,7 @@ def main(args: argparse.Namespace) -> int:
     path = Path(args.recording).expanduser()
     if args.max_frames is not None and args.max_frames < 1:
         return _fail(f"--max-frames must be at least 1, got {args.max_frames}")
-    if not 0 <= args.black_level <= 254:
+    if args.black_level is not None and not 0 <= args.black_level <= 254:
         return _fail(f"--black-level must be in 0..254, got {args.black_level}")
     for name in ("pose_sigma_m", "pose_sigma_deg"):
         value = getattr(args, name)
@@ -382,6 +397,8 @@ def main(args: argparse.Namespace) -> int:
         recording = open_recording(path, cfg, kind=args.format, overrides=overrides)
     except (ConfigError, RecordingError) as exc:
         return _fail(str(exc))
+    except OSError as exc:  # permissions, a file vanishing under us
+        return _fail(f"{exc.filename or path}: {exc.strerror or exc}")
 
     if args.export_tum:
         try:

@@ -548,6 +548,7 @@ class StreamRequest:
     requested_at: float | None = None
     next_check: float = 0.0
     backoff_s: float = 0.0
+    wanted_since: float = -math.inf  # one-shot messages: only an arrival after this counts
 
 
 @dataclass(slots=True)
@@ -587,7 +588,8 @@ class AutopilotLink:
       ``send_setpoint(velocity_ned_mps, yaw_rad=None, yaw_rate_radps=None, position_ned_m=None) -> bool``;
       ``can_command() -> (bool, reason)``; ``send_statustext(severity, text) -> int``;
       ``await set_mode(name)``, ``await arm()``, ``await disarm()``, ``await takeoff(alt_m)`` (only when allowed
-      by ``control.allow_mode_change`` / ``control.allow_arm``); ``truth_pose()``; ``await wait_connected(timeout)``.
+      by ``control.allow_mode_change`` / ``control.allow_arm``); ``truth_pose()``; ``await wait_connected(timeout)``;
+      ``record_telemetry(path | None)`` (a .tlog of every packet in and out).
     """
 
     def __init__(self, cfg: CompanionConfig, clock: Clock | None = None) -> None:
@@ -625,6 +627,10 @@ class AutopilotLink:
             "HOME_POSITION": StreamRequest("HOME_POSITION", mavlink2.MAVLINK_MSG_ID_HOME_POSITION, 0.0),
         }
         self._seen_estimator_resets = 0
+        self._tlog: Any = None  # open binary file while recording telemetry
+        self._tlog_anchor = (0.0, 0.0)  # (unix time, companion time) sampled together
+        self._tlog_path: Path | None = None
+        self.tlog_records = 0
 
         # Counters for the status.
         self.wire_errors: dict[str, int] = {}
@@ -736,6 +742,39 @@ class AutopilotLink:
         """Latest simulator truth (SIM_STATE) in the local NED frame, when ``link.request_sim_state``."""
         return self.assembler.truth_pose() if self.cfg.link.request_sim_state else None
 
+    def record_telemetry(self, path: str | os.PathLike | None) -> None:
+        """Write every MAVLink packet received (and sent) to ``path`` as a .tlog; None stops.
+
+        The format MAVProxy and pymavlink write and ``mavutil.mavlink_connection(path)`` reads: per
+        packet an 8-byte big-endian Unix time in microseconds (low 2 bits clear) and the packet
+        exactly as on the wire. The Unix time is the companion clock at reception mapped through
+        (time.time(), clock.now()) sampled together now, so ``unix = u0 + (t_s - t0) / speedup``
+        holds as in the recorder's meta.yaml. Corrupt input (BAD_DATA) is not logged. An open error
+        raises OSError; a write error later stops the recording and is logged (the link goes on).
+        """
+        if self._tlog is not None:
+            with contextlib.suppress(OSError):
+                self._tlog.close()
+            self._tlog = None
+            self._tlog_path = None
+        if path is None:
+            return
+        self._tlog = open(path, "ab")  # noqa: SIM115 - owned by the link until stopped or replaced
+        self._tlog_path = Path(path)
+        self._tlog_anchor = (time.time(), self.clock.now())
+
+    def _log_packet(self, t_companion: float, packet: bytes) -> None:
+        unix0, t0 = self._tlog_anchor
+        usec = int((unix0 + (t_companion - t0) / self.clock.speedup) * 1e6) & ~3
+        try:
+            self._tlog.write(usec.to_bytes(8, "big") + bytes(packet))
+            self.tlog_records += 1
+        except (OSError, ValueError) as exc:
+            self._error(f"telemetry log {self._tlog_path}: {exc}; recording stopped", key="tlog")
+            with contextlib.suppress(OSError, ValueError):
+                self._tlog.close()
+            self._tlog = None
+
     async def wait_connected(self, timeout_s: float) -> bool:
         """Wait (clock seconds) until an autopilot heartbeat is being received."""
         with contextlib.suppress(TimeoutError):
@@ -787,6 +826,7 @@ class AutopilotLink:
                 self._transport = None
             self._set_state("stopped")
             self._fail_pending("link stopped")
+            self.record_telemetry(None)
 
     async def _session(self) -> bool:
         """Run the periodic tasks until the transport is lost. True if an autopilot was heard."""
@@ -855,6 +895,12 @@ class AutopilotLink:
         period = 1.0 / self.cfg.link.heartbeat_rate_hz
         while True:
             self._send(self._mav.heartbeat_encode(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE))
+            if self._tlog is not None:
+                try:
+                    self._tlog.flush()  # at most a heartbeat period of telemetry is lost in a crash
+                except OSError as exc:
+                    self._error(f"telemetry log {self._tlog_path}: {exc}; recording stopped", key="tlog")
+                    self._tlog = None
             await self.clock.sleep(period)
 
     async def _timesync_loop(self) -> None:
@@ -914,7 +960,8 @@ class AutopilotLink:
                 s.backoff_s = min(max(2 * s.backoff_s, check), 30.0)
                 s.next_check = self.clock.now() + s.backoff_s
             for o in self._oneshots.values():  # sent once by the autopilot (when it exists): ask until it comes
-                if self.rates.last(o.name) is not None:
+                last = self.rates.last(o.name)
+                if last is not None and last >= o.wanted_since:
                     continue
                 if now >= o.next_check:
                     o.result = await self._command(mavlink2.MAV_CMD_REQUEST_MESSAGE, (o.msg_id, 0, 0, 0, 0, 0, 0), retries=1)
@@ -986,6 +1033,8 @@ class AutopilotLink:
         ok = t.write(buf)
         if ok:
             self.messages_tx += 1
+            if self._tlog is not None:
+                self._log_packet(self.clock.now(), buf)
         return ok
 
     def can_command(self) -> tuple[bool, str]:
@@ -1173,6 +1222,8 @@ class AutopilotLink:
             return
         now = self.clock.now()
         for m in msgs:
+            if self._tlog is not None and m.get_type() != "BAD_DATA" and not m.get_type().startswith("UNKNOWN_"):
+                self._log_packet(now, m.get_msgbuf())
             try:
                 self._dispatch(m, now)
             except Exception as exc:  # one bad message must not stop the others
@@ -1243,7 +1294,15 @@ class AutopilotLink:
             self.assembler.reset()
             self.nav_buffer.clear()
             self._need_stream_request = True
+            self._want_oneshots_again(now)
             self.send_statustext("WARNING", "companion: autopilot reboot detected")
+
+    def _want_oneshots_again(self, now: float) -> None:
+        """A new or rebooted autopilot: its origin and home must be asked for again."""
+        for o in self._oneshots.values():
+            o.wanted_since = now
+            o.next_check = 0.0
+            o.backoff_s = 0.0
 
     def _on_heartbeat(self, m: Any, src: tuple[int, int], now: float) -> None:
         if m.autopilot == MAV_AUTOPILOT_INVALID or m.type in (MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER):
@@ -1264,6 +1323,7 @@ class AutopilotLink:
             self.timesync.reset()
             self.assembler.reset()
             self.nav_buffer.clear()
+            self._want_oneshots_again(now)
         self._heartbeat = m
         self._last_heartbeat = now
         self._heard_autopilot = True
@@ -1367,6 +1427,7 @@ class AutopilotLink:
                 "ignored_messages": self.ignored_messages,
                 "dropped_writes": 0 if self._transport is None else self._transport.dropped_writes,
                 "last_error": self.last_error,
+                "telemetry_log": None if self._tlog is None else {"path": str(self._tlog_path), "records": self.tlog_records},
             },
             "streams": {
                 s.name: {

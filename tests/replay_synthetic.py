@@ -19,7 +19,7 @@ import yaml
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion.clock import Clock
-from companion.config import CompanionConfig
+from companion.config import CompanionConfig, replace
 from companion.geometry import PinholeCamera, camera_from_config, euler_to_matrix, matrix_to_quat
 from companion.messages import Frame
 from companion.recordings import WorldFrame, camera_pose_to_opencv
@@ -65,13 +65,23 @@ def world() -> World:
     return World.load("flat")
 
 
-@functools.lru_cache(maxsize=4)
 def flight(distorted: bool = False, n_frames: int = N_FRAMES) -> Flight:
-    """Rendered once per process and shape (the renderer build costs about a second)."""
-    cfg = CompanionConfig()
-    if distorted:
-        from companion.config import replace
+    """The first ``n_frames`` of the flight (rendered once per process and lens: the renderer
+    build costs about a second)."""
+    full = _full_flight(distorted)
+    if n_frames >= len(full.t):
+        return full
+    k = slice(0, n_frames)
+    return Flight(full.t[k], full.p[k], full.R_nb[k], full.p_c[k], full.R_nc[k], full.images[k], full.camera, full.cfg)
 
+
+@functools.lru_cache(maxsize=2)
+def _full_flight(distorted: bool) -> Flight:
+    n_frames = N_FRAMES
+    # The recording's configuration (meta.yaml of a --record folder): navigation floors that
+    # match the simulated autopilot's accuracy, as an operator would set them.
+    cfg = replace(CompanionConfig(), **{"nav.position_sigma_floor_m": 0.05, "nav.attitude_sigma_floor_deg": 0.2})
+    if distorted:
         cfg = replace(cfg, **{"camera.distortion": DISTORTION})
     camera, mount = camera_from_config(cfg.camera)
     renderer = Renderer(world(), camera, RenderOptions(noise_sigma=2.0, seed=5))

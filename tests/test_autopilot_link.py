@@ -607,6 +607,7 @@ def test_autopilot_reboot_is_detected_and_time_relearnt():
         async with running(link):
             assert await link.wait_connected(3.0)
             await until(lambda: link.timesync.synced and link.timesync.source == "TIMESYNC", what="sync")
+            await until(lambda: link.assembler.origin is not None, what="origin")
             requests = len(peer.of_type("COMMAND_LONG"))
             peer.ap_ahead_s = 1.0 - clock.now()  # reboot: the autopilot clock restarts at 1 s
             peer.intervals.clear()  # and it forgot the streams
@@ -615,6 +616,10 @@ def test_autopilot_reboot_is_detected_and_time_relearnt():
             assert len(peer.of_type("COMMAND_LONG")) > requests
             await until(lambda: link.timesync.synced and abs(link.timesync.offset_s + peer.ap_ahead_s) < 0.003, what="new offset")
             assert any("reboot" in m.text for m in peer.of_type("STATUSTEXT"))
+            # The origin is asked for again after the reboot (it may differ) and becomes known again.
+            await until(lambda: link.assembler.origin is not None, what="origin known again")
+            origin_requests = [m for m in peer.of_type("COMMAND_LONG") if m.command == mavlink2.MAV_CMD_REQUEST_MESSAGE and int(m.param1) == mavlink2.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN]
+            assert len(origin_requests) >= 2
         await peer.stop()
 
     run(main())
@@ -806,3 +811,40 @@ def test_a_cancelled_command_stays_cancelled_even_when_its_ack_arrives_at_the_sa
             await task
 
     run(main())
+
+
+def test_telemetry_log_is_a_tlog_pymavlink_reads_with_reception_times(tmp_path):
+    from pymavlink import mavutil
+
+    path = tmp_path / "telemetry.tlog"
+
+    async def main():
+        clock = Clock()
+        peer = Peer(clock, "ardupilot")
+        port = await peer.serve_udp()
+        peer.start()
+        link = AutopilotLink(make_cfg(f"udpout:127.0.0.1:{port}"), clock)
+        async with running(link):
+            import time as _time
+
+            unix_start, t_start = _time.time(), clock.now()
+            link.record_telemetry(path)
+            assert await link.wait_connected(3.0)
+            await until(lambda: link.nav_buffer.latest() is not None, what="nav")
+            await asyncio.sleep(0.3)
+            assert link.status()["link"]["telemetry_log"]["records"] > 20
+        await peer.stop()
+        return unix_start, t_start, clock.now()
+
+    unix_start, t_start, t_end = asyncio.run(asyncio.wait_for(main(), 15))
+    log = mavutil.mavlogfile(str(path), robust_parsing=True)
+    kinds, stamps = {}, []
+    while (m := log.recv_msg()) is not None:
+        assert m.get_type() != "BAD_DATA"
+        kinds.setdefault((m.get_type(), m.get_srcComponent()), 0)
+        kinds[(m.get_type(), m.get_srcComponent())] += 1
+        stamps.append(m._timestamp)
+    assert kinds[("LOCAL_POSITION_NED", 1)] > 5 and kinds[("HEARTBEAT", 1)] > 0
+    assert kinds[("HEARTBEAT", 191)] > 0 and kinds[("COMMAND_LONG", 191)] > 0  # what we sent is logged too
+    assert all(b >= a for a, b in zip(stamps, stamps[1:]))
+    assert unix_start - 0.01 <= stamps[0] and stamps[-1] <= unix_start + (t_end - t_start) + 0.01

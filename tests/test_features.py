@@ -466,3 +466,12 @@ def test_cost_relative_to_cornerharris_alone():
           f"ratio median {d / h:.2f}, min {d_min / h_min:.2f}")
     assert len(uv) >= 0.95 * cfg.max_detections
     assert d_min / h_min < 4.0
+
+
+@given(st.lists(st.integers(0, 6), min_size=0, max_size=60), st.integers(1, 70))
+@settings(max_examples=60, deadline=None)
+def test_strongest_is_a_prefix_of_the_stable_sort(values, T):
+    from companion.mapper.features import strongest
+
+    score = np.array(values, float)  # small integers: many ties
+    assert strongest(score, T).tolist() == np.argsort(-score, kind="stable")[:T].tolist()

@@ -30,7 +30,7 @@ from companion.recordings import (
     pose_covariance,
     read_gray,
 )
-from companion.replay import build_mapper, clamp_black
+from companion.replay import JPEG_BLACK_LEVEL, black_level_for, build_mapper, clamp_black
 from companion.terrain.grid import TerrainGrid
 
 AXES = ["x", "-x", "y", "-y", "z", "-z"]
@@ -353,15 +353,19 @@ def distance_to_black(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("fmt", ["png", "jpg"])
 def test_undistorted_frames_with_black_borders_give_no_feature_on_the_border(tmp_path, fmt):
     """Frames read from a TUM folder (lossless PNG, and JPEG whose black border rings a few grey
-    levels above 0 and needs --black-level) through the replay's own detector."""
+    levels above 0: without the automatic black level a feature lands 6 px from it) through the
+    replay's own detector."""
     f = rs.flight(n_frames=6)
     folder = rs.write_tum(tmp_path / "t", f, WorldFrame("z", "x"), image_ext=f".{fmt}")
     for k, image in enumerate(f.images):
-        cv2.imwrite(str(folder / "images" / f"{k:04d}.{fmt}"), black_border(image), [cv2.IMWRITE_JPEG_QUALITY, 75])
+        params = [cv2.IMWRITE_JPEG_QUALITY, 75] if fmt == "jpg" else []
+        cv2.imwrite(str(folder / "images" / f"{k:04d}.{fmt}"), black_border(image), params)
     rec = open_recording(folder)
     cfg = CompanionConfig()
     mapper = build_mapper(cfg, rec, TerrainGrid.from_config(cfg.terrain))
-    level = 16 if fmt == "jpg" else 0
+    levels = {black_level_for(s.image_path, None) for s in rec.samples(load_images=False)}
+    assert levels == ({JPEG_BLACK_LEVEL} if fmt == "jpg" else {0})  # automatic: JPEG borders ring above 0
+    level = levels.pop()
     n = 0
     for s in rec.samples():
         truth = black_border(f.images[s.index])  # where the border really is

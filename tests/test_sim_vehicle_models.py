@@ -334,3 +334,54 @@ def test_px4_odometry_reports_the_injected_variances_and_nan_elsewhere():
     for i, v in enumerate(odo.velocity_covariance):
         assert (v == pytest.approx(sig[3 + (0, 6, 11).index(i)] ** 2)) if i in (0, 6, 11) else math.isnan(v)
     assert odo.frame_id == mav.MAV_FRAME_LOCAL_NED and odo.child_frame_id == mav.MAV_FRAME_LOCAL_NED
+
+
+def _px4_offboard(ap, link):
+    sp = mav.MAVLink_set_position_target_local_ned_message(0, 1, 1, mav.MAV_FRAME_LOCAL_NED, 0b1001_1111_1000,
+                                                            10.0, 5.0, -8.0, 0, 0, 0, 0, 0, 0, 1.0, 0)
+    for _ in range(5):
+        ap.handle(_msg(sp), link)
+        ap.run_for(0.1)
+    assert _cmd(ap, link, mav.MAV_CMD_DO_SET_MODE, 1, 6, 0) == mav.MAV_RESULT_ACCEPTED
+    assert _cmd(ap, link, mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
+    for _ in range(200):
+        ap.handle(_msg(sp), link)
+        ap.run_for(0.1)
+
+
+def test_px4_offboard_position_setpoint_with_yaw_is_reached_in_the_reported_frame():
+    ap = PX4Multicopter(replace(SimConfig(), flavour="px4", origin_delay_s=0.2))
+    link = _Link()
+    ap.run_for(0.5)
+    _px4_offboard(ap, link)  # position only (type_mask ignores velocity, acceleration, yaw rate)
+    est = ap.estimate()
+    assert np.linalg.norm(est["p"] - [10.0, 5.0, -8.0]) < 0.2  # the controller flies its estimate
+    assert abs(ap.vehicle.yaw - 1.0) < 0.02
+    truth_error = np.linalg.norm(np.array(ap.vehicle.p) - [10.0, 5.0, -8.0])
+    assert truth_error < 5 * max(ap.nav.spec.sigma[:3])  # and misses in truth by the navigation error
+
+
+def test_ardupilot_body_frame_velocity_and_global_position_targets():
+    ap = ArduPilotCopter(replace(SimConfig(), origin_delay_s=0.2))
+    link = _Link()
+    ap.run_for(0.5)
+    _fly_guided(ap, link, 0.1)
+    # turn to face east, then "forward" in MAV_FRAME_BODY_NED is east
+    assert _cmd(ap, link, mav.MAV_CMD_CONDITION_YAW, 90, 30, 1, 0) == mav.MAV_RESULT_ACCEPTED
+    ap.run_for(4.0)
+    assert abs(ap.vehicle.yaw - math.pi / 2) < 0.05
+    fwd = mav.MAVLink_set_position_target_local_ned_message(0, 1, 1, mav.MAV_FRAME_BODY_NED, 0b0000_1111_1100_0111,
+                                                             0, 0, 0, 3.0, 0, 0, 0, 0, 0, 0, 0)
+    for _ in range(40):
+        ap.handle(_msg(fwd), link)
+        ap.run_for(0.1)
+    v = ap.estimate()["v"]
+    assert abs(v[1] - 3.0) < 0.2 and abs(v[0]) < 0.2, v
+    # SET_POSITION_TARGET_GLOBAL_INT, relative altitude: fly to a point 20 m north of home, 12 m up
+    lat, lon, _ = ap.home.ned_to_global(20.0, 0.0, 0.0)
+    tgt = mav.MAVLink_set_position_target_global_int_message(0, 1, 1, mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                                              0b0000_1111_1111_1000, int(lat * 1e7), int(lon * 1e7), 12.0,
+                                                              0, 0, 0, 0, 0, 0, 0, 0)
+    ap.handle(_msg(tgt), link)
+    ap.run_for(25.0)
+    assert np.linalg.norm(ap.estimate()["p"] - [20.0, 0.0, -12.0]) < 0.3

@@ -11,12 +11,13 @@ Pipeline for one grey frame (``H x W``, ``uint8``):
 2. ``candidate_maxima``: 3x3 local maxima of ``R`` above ``max(quality * R_best, floor)``,
    inside the valid region (image edges, a caller's mask and black borders eroded by the
    margin). OpenCV does the image-wide work; NumPy only sees the few hundred maxima.
-3. ``select_features``: in descending score order, the greedy minimum-distance suppression
-   (a feature is dropped when a stronger *kept* feature lies closer than ``min_distance_px``,
-   across bin borders too), then at most ``per_bin`` per bin, then at most ``max_detections``.
-4. ``refine_corners``: sub-pixel corner position (OpenCV's ``cornerSubPix``, Förstner's
-   gradient-orthogonality least squares), then ``select_features`` again on the refined
-   positions so every guarantee holds for what is returned.
+3. ``refine_corners``: sub-pixel corner positions of the strongest candidates (OpenCV's
+   ``cornerSubPix``, Förstner's gradient-orthogonality least squares); a corner that moves out
+   of the valid region is dropped.
+4. ``select_features`` on the refined positions: in descending score order, the greedy
+   minimum-distance suppression (a feature is dropped when a stronger *kept* feature lies
+   closer than ``min_distance_px``, across bin borders too), then at most ``per_bin`` per bin,
+   then at most ``max_detections``. Every rule holds for what is returned.
 
 Coordinates are raw pixels, ``x`` = column, ``y`` = row, pixel centres at integers (OpenCV's
 and :class:`companion.geometry.PinholeCamera`'s convention).
@@ -29,7 +30,18 @@ import numpy as np
 
 from companion.config import MapperConfig
 
-__all__ = ["HarrisDetector", "detect_corners", "select_features", "suppress_within", "refine_corners", "strongest"]
+__all__ = [
+    "HarrisDetector",
+    "as_gray",
+    "black_border_depths",
+    "black_border_valid",
+    "detect_corners",
+    "refine_corners",
+    "select_features",
+    "select_ordered",
+    "strongest",
+    "suppress_within",
+]
 
 SOBEL_APERTURE = 3  # cornerHarris' derivative kernel; the response at a pixel sees block//2 + 1 around it
 # cornerSubPix: at most 5 iterations or a step below 0.03 px (measured: more buys < 0.005 px)
@@ -186,7 +198,9 @@ def _close_pairs(xy: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
     dst = order[np.arange(src.size) - np.repeat(first - start, count)]
     keep = src < dst
     src, dst = src[keep], dst[keep]
-    close = np.hypot(x[src] - x[dst], y[src] - y[dst]) < d  # hypot: d * d would underflow for tiny d
+    dx, dy = x[src] - x[dst], y[src] - y[dst]
+    # squares are cheaper than hypot, but d * d underflows for absurdly small d
+    close = dx * dx + dy * dy < d * d if d > 1e-100 else np.hypot(dx, dy) < d
     return src[close], dst[close]
 
 
@@ -239,39 +253,51 @@ def _bin_rank(xy: np.ndarray, width: int, height: int, bins_x: int, bins_y: int)
 
 
 def strongest(score: np.ndarray, T: int) -> np.ndarray:
-    """Indices of the ``T`` highest scores, in descending order (a partial sort: frames of dense
-    texture give ten thousand candidates of which a few hundred are ever looked at)."""
+    """Indices of the ``T`` highest scores, strongest first, ties in index order: exactly
+    ``argsort(-score, kind="stable")[:T]``, by a partial sort (frames of dense texture give ten
+    thousand candidates of which a few hundred are ever looked at)."""
     if T >= len(score):
         return np.argsort(-score, kind="stable")
-    top = np.argpartition(-score, T - 1)[:T]
-    return top[np.argsort(-score[top], kind="stable")]
+    neg = -score
+    kth = np.partition(neg, T - 1)[T - 1]
+    top = np.flatnonzero(neg <= kth)  # every tie of the T-th score, in index order
+    return top[np.argsort(neg[top], kind="stable")][:T]
+
+
+def select_ordered(xy: np.ndarray, cfg: MapperConfig, width: int, height: int) -> np.ndarray:
+    """One pass of the rule over points ``xy (K, 2)`` already in descending score order:
+    indices (ascending) of the greedy minimum distance, then at most ``per_bin`` per bin, then
+    at most ``max_detections``."""
+    keep = np.flatnonzero(suppress_within(xy, cfg.min_distance_px))
+    keep = keep[_bin_rank(xy[keep], width, height, cfg.bins_x, cfg.bins_y) < cfg.per_bin]
+    return keep[: cfg.max_detections]
 
 
 def select_features(
-    xy: np.ndarray, cfg: MapperConfig, width: int, height: int, score: np.ndarray | None = None, spare: int = 0
+    xy: np.ndarray, cfg: MapperConfig, width: int, height: int, score: np.ndarray | None = None
 ) -> np.ndarray:
     """Indices of the features to pass on (seed 000, II.C), strongest first: in descending score
     order, the greedy minimum distance, then at most ``per_bin`` per bin, then at most
     ``max_detections``.
 
     ``xy (K, 2)``: points; ``score (K,)``: their scores, or ``None`` when ``xy`` is already in
-    descending score order. ``spare`` > 0 lets ``spare`` more per bin and ``spare`` times 25%
-    more in all through (a pre-selection that a later, exact selection trims).
+    descending score order (ties: the lower index is stronger).
 
     The greedy decisions for the strongest ``T`` points do not depend on weaker ones, so the
     work starts on the strongest few and takes more only when they yield too few features."""
-    per_bin = cfg.per_bin + spare
-    limit = cfg.max_detections + spare * max(4, cfg.max_detections // 4)
     K = len(xy)
-    T = min(K, max(2 * limit, 64))
+    T = min(K, _first_batch(cfg))
     while True:
         order = np.arange(T) if score is None else strongest(score, T)
-        p = xy[order]
-        keep = np.flatnonzero(suppress_within(p, cfg.min_distance_px))
-        keep = keep[_bin_rank(p[keep], width, height, cfg.bins_x, cfg.bins_y) < per_bin]
-        if len(keep) >= limit or T == K:
-            return order[keep[:limit]]
+        keep = select_ordered(xy[order], cfg, width, height)
+        if len(keep) >= cfg.max_detections or T == K:
+            return order[keep]
         T = min(K, 4 * T)
+
+
+def _first_batch(cfg: MapperConfig) -> int:
+    """How many of the strongest candidates to look at first (usually enough to fill)."""
+    return max(2 * cfg.max_detections, 64)
 
 
 # --------------------------------------------------------------------------------------------
@@ -302,7 +328,8 @@ class HarrisDetector:
     """Binned Harris detector for frames of one size; callable ``detector(image) -> (uv, score)``.
 
     Buffers (response, dilation, candidate mask), the eroded static mask and the margins are
-    prepared once here; a call allocates only what depends on the frame's content.
+    prepared once here; a call allocates only what depends on the frame's content. The buffers
+    make a detector single-threaded: one per stream and thread.
 
     Parameters: ``cfg`` (``max_detections``, ``bins_x``, ``bins_y``, ``per_bin``,
     ``min_distance_px``, ``harris_k``, ``harris_block_size``, ``harris_quality``,
@@ -427,14 +454,24 @@ class HarrisDetector:
         self.n_candidates = len(xy)
         if len(xy) == 0:
             return _EMPTY_UV.copy(), _EMPTY_SCORE.copy()
-        cfg = self.cfg
-        # a few spare features make up for those the refinement drops or moves too close
-        idx = select_features(xy.astype(np.float64), cfg, self.width, self.height, score=score, spare=1)
-        uv, inside = self.refine(gray, xy[idx], valid)
-        uv, score = uv[inside], score[idx][inside]  # still strongest first
-        # refinement moves points by up to the window: re-apply every guarantee to the result
-        again = select_features(uv, cfg, self.width, self.height)
-        return uv[again], score[again]
+        # Refine first, then select on the refined positions, so that every rule holds for what
+        # is returned. Only the strongest T candidates are refined; as in select_features, more
+        # are taken (and only those refined) when they cannot fill max_detections.
+        cfg, K = self.cfg, len(xy)
+        T = min(K, _first_batch(cfg))
+        order = strongest(score, T)
+        uv, inside = self.refine(gray, xy[order], valid)
+        while True:
+            ok = np.flatnonzero(inside)
+            keep = ok[select_ordered(uv[ok], cfg, self.width, self.height)]
+            if len(keep) >= cfg.max_detections or T == K:
+                return uv[keep], score[order[keep]]
+            # take as many more as this batch's yield says are needed (refining costs ~1 us each)
+            done = T
+            T = min(K, 4 * T, max(T + 16, int(1.25 * T * cfg.max_detections / max(len(keep), 1))))
+            order = strongest(score, T)  # the first `done` are the ones refined already
+            more, more_inside = self.refine(gray, xy[order[done:]], valid)
+            uv, inside = np.concatenate([uv, more]), np.concatenate([inside, more_inside])
 
 
 def detect_corners(

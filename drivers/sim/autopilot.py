@@ -165,6 +165,7 @@ class SimAutopilot:
         self.behaviour = Behaviour.HOLD
         self.hold_ned = list(self.vehicle.p)
         self.hold_yaw = 0.0
+        self.goto_ned: list[float] | None = None  # a position to hold instead of stopping (reposition)
         self.takeoff_down_m = self.home.start_down_m
         self.takeoff_speed_mps = 1.5
         self.rtl_phase = "climb"
@@ -183,6 +184,7 @@ class SimAutopilot:
         self.params: dict[str, Param] = {p.name: p for p in self.default_params()}
         self.unhandled: collections.Counter = collections.Counter()
         self.after_ack: list = []
+        self._estimate_cache: tuple[int, dict] | None = None
         self.last_gps_s = -math.inf
 
     # ------------------------------------------------------------------------------------------
@@ -231,15 +233,23 @@ class SimAutopilot:
         return {"p": np.array(self.vehicle.p), "v": np.array(self.vehicle.v), "R": R, "q": matrix_to_quat(R)}
 
     def estimate(self) -> dict:
-        """The navigation estimate: truth plus the injected error (see navigation_error)."""
+        """The navigation estimate: truth plus the injected error (see navigation_error).
+
+        Cached for the current physics step: several messages of one step share it (read-only).
+        """
+        cached = self._estimate_cache
+        if cached is not None and cached[0] == self.step_count:
+            return cached[1]
         R_true = self.vehicle.rotation_body_to_ned()
         R = self.nav.estimated_rotation(R_true)
-        return {
+        est = {
             "p": np.array(self.vehicle.p) + self.nav.position_error_m,
             "v": np.array(self.vehicle.v) + self.nav.velocity_error_mps,
             "R": R,
             "q": matrix_to_quat(R),
         }
+        self._estimate_cache = (self.step_count, est)
+        return est
 
     @property
     def position_valid(self) -> bool:
@@ -259,6 +269,7 @@ class SimAutopilot:
         est_p = [self.vehicle.p[i] + self.nav.position_error_m[i] for i in range(3)]
         self.hold_ned = est_p
         self.hold_yaw = self.vehicle.yaw
+        self.goto_ned = None
         if behaviour is Behaviour.RTL:
             self.rtl_phase = "climb"
         if behaviour is not self.behaviour:
@@ -267,14 +278,17 @@ class SimAutopilot:
 
     def current_setpoint(self) -> Setpoint:
         b = self.behaviour
+        # Holding is a zero-velocity target: the shaped reference brakes to a stop and the position
+        # loop then holds where it stopped (ArduPilot's GUIDED stop, PX4's Hold braking point);
+        # on the ground it means staying there however the estimate wanders.
+        stop = Setpoint(velocity_ned_mps=(0.0, 0.0, 0.0), yaw_rad=self.hold_yaw)
         if self.landed and (b is Behaviour.HOLD or (b is Behaviour.EXTERNAL and not self.EXTERNAL_CAN_TAKE_OFF)):
-            # on the ground, holding means staying there: no climb however the estimate wanders
-            return Setpoint(velocity_ned_mps=(0.0, 0.0, 0.0), yaw_rad=self.hold_yaw)
+            return stop
         if b is Behaviour.EXTERNAL:
             sp = self.external_setpoint()
             if sp is not None and (self.EXTERNAL_CAN_TAKE_OFF or not self.landed):
                 return sp
-            return Setpoint.hold(self.hold_ned, self.hold_yaw)
+            return stop
         if b is Behaviour.TAKEOFF:
             return Setpoint(position_ned_m=(self.hold_ned[0], self.hold_ned[1], self.takeoff_down_m),
                             yaw_rad=self.hold_yaw, climb_mps=self.takeoff_speed_mps)
@@ -283,7 +297,9 @@ class SimAutopilot:
                             velocity_ned_mps=(NAN, NAN, self.land_speed_mps()), yaw_rad=self.hold_yaw)
         if b is Behaviour.RTL:
             return self.rtl_setpoint()
-        return Setpoint.hold(self.hold_ned, self.hold_yaw)
+        if self.goto_ned is not None:
+            return Setpoint.hold(self.goto_ned, self.hold_yaw)
+        return stop
 
     def external_setpoint(self) -> Setpoint | None:
         """The companion's last setpoint as the flavour applies it (timeouts differ)."""

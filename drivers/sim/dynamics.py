@@ -312,15 +312,19 @@ class PointMassMultirotor:
 
     @staticmethod
     def _rotation(thrust: list[float], yaw: float) -> np.ndarray:
-        """Body->NED rotation with body z along -thrust and the nose as close to ``yaw`` as tilt allows."""
-        t = np.asarray(thrust, float)
-        n = np.linalg.norm(t)
-        z_b = -t / n if n > 1e-6 else np.array([0.0, 0.0, 1.0])
-        x_c = np.array([math.cos(yaw), math.sin(yaw), 0.0])
-        y_b = np.cross(z_b, x_c)
-        y_b /= np.linalg.norm(y_b)
-        x_b = np.cross(y_b, z_b)
-        return np.column_stack([x_b, y_b, z_b])
+        """Body->NED rotation with body z along -thrust and the nose as close to ``yaw`` as tilt allows.
+
+        Plain floats: this runs for every attitude-bearing message (np.cross costs ~20 us a call).
+        """
+        n = math.sqrt(thrust[0] ** 2 + thrust[1] ** 2 + thrust[2] ** 2)
+        zx, zy, zz = (-thrust[0] / n, -thrust[1] / n, -thrust[2] / n) if n > 1e-6 else (0.0, 0.0, 1.0)
+        cx, cy = math.cos(yaw), math.sin(yaw)
+        # y_b = z_b x x_c (x_c = heading direction, horizontal), normalised; x_b = y_b x z_b
+        yx, yy, yz = -zz * cy, zz * cx, zx * cy - zy * cx
+        m = math.sqrt(yx * yx + yy * yy + yz * yz)
+        yx, yy, yz = yx / m, yy / m, yz / m
+        xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
+        return np.array([[xx, yx, zx], [xy, yy, zy], [xz, yz, zz]])
 
     def rotation_body_to_ned(self) -> np.ndarray:
         """(3, 3) true attitude R_nb."""

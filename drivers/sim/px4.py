@@ -242,7 +242,7 @@ class PX4Multicopter(SimAutopilot):
             return mav.MAV_RESULT_DENIED
         self.mode = HOLD
         self.enter(Behaviour.HOLD)
-        self.hold_ned = list(self.home.global_to_ned(lat, lon, alt))
+        self.goto_ned = list(self.home.global_to_ned(lat, lon, alt))
         if math.isfinite(params[3]):
             self.hold_yaw = math.radians(params[3])
         return mav.MAV_RESULT_ACCEPTED

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import logging
 import math
 import signal
@@ -171,12 +172,12 @@ async def _run(args, sim, home: Home) -> int:
         for e in endpoints:
             e.close()
         return 1
-    for e in endpoints:
-        print(e.describe(), flush=True)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+        loop.add_signal_handler(sig, stop.set)  # before announcing: a client may signal at once
+    for e in endpoints:
+        print(e.describe(), flush=True)
     process = VehicleProcess(ap, endpoints, sim.speedup, args.duration)
     log.info("%s vehicle sysid %d, speed-up %.1f, seed %d, origin after %.1f s, home %.6f %.6f %.1f m",
              ap.FLAVOUR, args.sysid, sim.speedup, ap.seed, sim.origin_delay_s, home.lat_deg, home.lon_deg, home.alt_m)
@@ -212,7 +213,8 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="random seed of navigation error, GPS and wind (default: sim.seed)")
     p.add_argument("--sysid", type=int, default=1, help="MAVLink system id (default 1)")
     p.add_argument("--origin-delay", type=float, metavar="S", help="EKF origin / GPS fix this long after boot")
-    p.add_argument("--home", metavar="LAT,LON,ALT", help="override the scenario's home (deg, deg, m AMSL)")
+    p.add_argument("--home", metavar="LAT,LON,ALT",
+                   help="override the scenario's home (deg, deg, m AMSL); write --home=-35.36,149.17,584 for a negative latitude")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any sim.* key, e.g. nav_pos_tau_s=2")
     p.add_argument("--duration", type=float, metavar="S", help="stop after this many simulated seconds")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
@@ -231,7 +233,6 @@ def sim_config_from_args(args) -> tuple:
                        ("seed", args.seed), ("origin_delay_s", args.origin_delay)):
         if value is not None:
             overrides[key] = value
-    import dataclasses
     base = {f.name: getattr(cfg.sim, f.name) for f in dataclasses.fields(cfg.sim)}
     base = {k: list(v) if isinstance(v, tuple) else v for k, v in base.items()}
     base.update(overrides)

@@ -1,0 +1,211 @@
+"""``companion replay``: the mapper over recordings (companion/replay.py, docs/replay.md).
+
+Every recording here is the same simulated flight (tests/replay_synthetic.py: flat textured
+ground, 15 m up, 6 m/s north, camera 45 deg down, 60 frames at 10 Hz) written in one layout.
+Run with ``-s`` to print the figures (map error against the true surface, frames/s).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+import replay_synthetic as rs
+from companion import cli
+from companion.config import CompanionConfig
+from companion.geometry import matrix_to_quat
+from companion.map_metrics import bin_heights, compare, map_cells, read_reference_csv, reference_metrics
+from companion.messages import NavState
+from companion.recordings import WorldFrame, export_tum, open_recording, pose_covariance, recording_config
+from companion.replay import build_mapper, load_reference, run_replay
+from companion.terrain.grid import TerrainGrid
+
+# Region of the flight's map, and the accuracy the mapper reaches on it today (measured: median
+# |error| ~0.1 m, 90-95 % of cells within 1 m; the RMSE is dominated by a few misassociated
+# far features, so it is printed, not asserted tightly).
+NORTH, EAST = (-20.0, 140.0), (-60.0, 60.0)
+MEDIAN_ABS_MAX_M = 0.3
+WITHIN_1M_MIN = 0.8
+SAME_MAP_TOL_M = 0.01  # own recording vs its TUM export: same cells, heights within this
+
+
+def print_figures(name: str, metrics: dict) -> None:
+    ref = metrics.get("reference") or {}
+    print(f"\n{name}: {metrics['frames_processed']} frames, mapper {metrics['mapper_fps']:.1f} frames/s "
+          f"(replay {metrics['replay_fps']:.1f}), {metrics['converged_points']} points, {metrics['cells_mapped']} cells"
+          + (f"; vs truth RMSE {ref['rmse_m']:.2f} m, bias {ref['bias_m']:+.3f} m, median |e| {ref['median_abs_m']:.3f} m, "
+             f"within 1 m {100 * ref['within_1m']:.1f} %" if ref.get("rmse_m") is not None else ""))
+
+
+def assert_close_to_truth(metrics: dict) -> None:
+    ref = metrics["reference"]
+    assert ref["cells_compared"] == metrics["cells_mapped"] > 300
+    assert ref["median_abs_m"] < MEDIAN_ABS_MAX_M, ref
+    assert ref["within_1m"] > WITHIN_1M_MIN, ref
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("replay")
+    truth = rs.truth_csv(root / "truth.csv", NORTH, EAST)
+    return {
+        "root": root,
+        "truth": truth,
+        "tum": rs.write_tum(root / "tum", rs.flight(), WorldFrame.from_up("-y", scale_m_per_unit=0.5)),
+        "companion": rs.write_companion(root / "own", rs.flight()),
+    }
+
+
+def direct_map(cfg: CompanionConfig, sigma_m: float, sigma_deg: float) -> TerrainGrid:
+    """The mapper fed directly with the true body poses and the rendered images (no files)."""
+    f = rs.flight()
+    grid = TerrainGrid.from_config(cfg.terrain)
+    rec = type("R", (), {"camera": f.camera, "mount": f.mount, "ground_alt_m": 0.0})()
+    mapper = build_mapper(cfg, rec, grid)
+    cov = pose_covariance(np.full(3, sigma_m), np.full(3, math.radians(sigma_deg)))
+    for t, p, R, image in zip(f.t, f.p, f.R_nb, f.images):
+        grid.insert(mapper.step(NavState(float(t), p, np.zeros(3), matrix_to_quat(R), cov), image).points)
+    return grid
+
+
+def test_tum_replay_is_the_mapper_on_the_true_poses_and_writes_map_and_metrics(data, tmp_path):
+    """A TUM folder in a y-down world at 2 m per unit replays to exactly the map the mapper makes
+    from the true NED poses: the conversions lose nothing."""
+    cfg = CompanionConfig()
+    rec = open_recording(data["tum"], cfg)
+    ref = load_reference(data["truth"], rec)
+    result = run_replay(rec, cfg, tmp_path / "out", reference=ref)
+    m = result.metrics
+    print_figures("TUM replay", m)
+    assert m["frames_processed"] == 60 and m["frames_without_nav"] == 0 and m["frames_unreadable"] == 0
+    direct = map_cells(direct_map(cfg, 0.05, 0.2))  # meta.yaml's pose sigmas
+    replayed = map_cells(result.grid)
+    assert np.array_equal(replayed.keys, direct.keys)
+    assert np.max(np.abs(replayed.height - direct.height)) < 1e-6
+    assert_close_to_truth(m)
+    # outputs: metrics.json as returned, figures that decode, a snapshot that is the map
+    on_disk = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    for key in ("frames_processed", "frames_without_nav", "mapper_fps", "converged_points", "cells_mapped", "reference"):
+        assert on_disk[key] == m[key]
+    assert set(on_disk["reference"]) >= {"rmse_m", "bias_m", "coverage", "cells_compared"}
+    for png in ("terrain_map.png", "terrain_error.png"):
+        image = cv2.imread(str(tmp_path / "out" / png))
+        assert image is not None and image.shape[0] > 100
+    again = map_cells(TerrainGrid.load_snapshot(tmp_path / "out" / "terrain.snapshot", cfg.terrain))
+    assert np.array_equal(again.keys, replayed.keys) and np.array_equal(again.height, replayed.height)
+
+
+def test_reference_bias_and_rmse_follow_a_shifted_reference_exactly(data, tmp_path):
+    grid = direct_map(CompanionConfig(), 0.05, 0.2)
+    pts = read_reference_csv(data["truth"]).xyz
+    base = reference_metrics(grid, pts[:, 0], pts[:, 1], pts[:, 2])
+    for shift in (+1.0, -2.5):
+        m = reference_metrics(grid, pts[:, 0], pts[:, 1], pts[:, 2] + shift)
+        assert m["cells_compared"] == base["cells_compared"] > 300
+        assert math.isclose(m["bias_m"], base["bias_m"] - shift, abs_tol=1e-9)
+        # mean((e - s)^2) = rmse^2 - 2 s bias + s^2
+        assert math.isclose(m["rmse_m"] ** 2, base["rmse_m"] ** 2 - 2 * shift * base["bias_m"] + shift**2, rel_tol=1e-9)
+    assert math.isclose(base["coverage"], base["cells_compared"] / base["cells_reference"])
+    # a point cloud: several points per cell reduce to the cell's mean / max / median
+    cells = bin_heights(np.array([0.2, 0.7, 0.9, 5.5]), np.array([0.1, 0.4, 0.3, 5.5]), np.array([1.0, 2.0, 6.0, 3.0]), 1.0, "mean")
+    assert cells.height.tolist() == [3.0, 3.0] and cells.count.tolist() == [3, 1]
+    assert bin_heights(np.zeros(3), np.zeros(3), np.array([1.0, 2.0, 6.0]), 1.0, "max").height.tolist() == [6.0]
+    assert bin_heights(np.zeros(4), np.zeros(4), np.array([1.0, 2.0, 6.0, 9.0]), 1.0, "median").height.tolist() == [4.0]
+    no_overlap = compare(map_cells(grid), bin_heights(np.array([1e4]), np.array([1e4]), np.array([0.0]), 1.0))
+    assert no_overlap["cells_compared"] == 0 and no_overlap["rmse_m"] is None
+
+
+def test_euroc_replay_maps_the_true_surface(data, tmp_path):
+    root = rs.write_euroc(data["root"] / "euroc", rs.flight(distorted=True))
+    cfg = CompanionConfig()
+    rec = open_recording(root, cfg)
+    # the EuRoC world is z up, x north: a reference in the dataset's frame has y = -east
+    pts = read_reference_csv(data["truth"]).xyz
+    (tmp_path / "ref_world.csv").write_text("\n".join(f"{x},{-y},{z}" for x, y, z in pts.tolist()))
+    ref = load_reference(tmp_path / "ref_world.csv", rec, frame="dataset")
+    m = run_replay(rec, cfg, tmp_path / "out", reference=ref).metrics
+    print_figures("EuRoC replay (distorted lens)", m)
+    assert m["frames_processed"] == 60
+    assert_close_to_truth(m)
+
+
+def test_own_recording_and_its_tum_export_replay_to_the_same_map(data, tmp_path):
+    """The documented conversion (``companion replay REC --export-tum OUT``) of a --record folder:
+    both replay to the same map within SAME_MAP_TOL_M."""
+    cfg = recording_config(data["companion"])  # what the command line uses without --config
+    assert cfg is not None and cfg.nav.position_sigma_floor_m == 0.05
+    own = open_recording(data["companion"], cfg)
+    ref = load_reference(data["truth"], own)
+    a = run_replay(own, cfg, tmp_path / "own", reference=ref)
+    assert cli.main(["replay", str(data["companion"]), "--export-tum", str(tmp_path / "tum")]) == 0
+    b = run_replay(open_recording(tmp_path / "tum", cfg), cfg, tmp_path / "tum_out", reference=ref)
+    print_figures("own recording", a.metrics)
+    print_figures("its TUM export", b.metrics)
+    ca, cb = map_cells(a.grid), map_cells(b.grid)
+    assert np.array_equal(ca.keys, cb.keys) and len(ca) > 300
+    diff = float(np.max(np.abs(ca.height - cb.height)))
+    print(f"own vs export: {len(ca)} cells, max |height difference| {diff:.2e} m")
+    assert diff < SAME_MAP_TOL_M
+    assert_close_to_truth(a.metrics)
+
+
+def test_broken_frames_and_pose_lines_are_counted_and_the_replay_continues(tmp_path):
+    folder = rs.write_tum(tmp_path / "t", rs.flight(n_frames=30), WorldFrame("z", "x"))
+    poses = (folder / "poses.txt").read_text().splitlines()
+    poses[8] = poses[8].rsplit(" ", 2)[0]  # a pose line cut short
+    (folder / "poses.txt").write_text("\n".join(poses) + "\n")
+    images = (folder / "images.txt").read_text().splitlines()
+    images.insert(5, "not-a-time images/0003.png")
+    (folder / "images.txt").write_text("\n".join(images) + "\n")
+    (folder / "images" / "0010.png").write_bytes(b"broken")
+    (folder / "images" / "0011.png").unlink()
+    cfg = CompanionConfig()
+    m = run_replay(open_recording(folder, cfg), cfg, tmp_path / "out").metrics
+    assert m["recording"]["bad_lines"] == {"poses.txt": 1, "images.txt": 1}
+    assert m["frames_listed"] == 30 and m["frames_unreadable"] == 2 and m["frames_processed"] == 28
+    assert sum(m["image_problems"].values()) == 2
+    assert m["cells_mapped"] > 100 and m["converged_points"] > 0
+    assert any("images.txt: line" in p for p in m["recording"]["problems"])
+
+
+def test_command_line_replay_with_reference_progress_and_limits(data, tmp_path, capsys):
+    out = tmp_path / "cli"
+    rc = cli.main(["replay", str(data["tum"]), "--output", str(out), "--max-frames", "20", "--reference",
+                   str(data["truth"]), "--parameterisation", "cartesian"])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    assert "replay [" in captured.err and "20/20 frames" in captured.err  # the progress bar
+    assert "reference: RMSE" in captured.out
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["frames_listed"] == 20 and m["config"]["parameterisation"] == "cartesian"
+    assert m["reference"]["cells_compared"] > 0 and (out / "terrain_map.png").is_file()
+    # bad input: a clear message and exit status 2, nothing written
+    assert cli.main(["replay", str(tmp_path / "nothing-here")]) == 2
+    assert "not a folder" in capsys.readouterr().err
+    assert cli.main(["replay", str(data["tum"]), "--max-frames", "0"]) == 2
+    assert cli.main(["replay", str(data["tum"]), "-o", str(tmp_path / "x"), "--reference", str(tmp_path / "none.csv")]) == 2
+    assert "cannot read reference" in capsys.readouterr().err
+    assert not (tmp_path / "x" / "metrics.json").exists()
+
+
+def test_own_recording_config_is_used_unless_a_config_file_is_given(data, tmp_path, capsys):
+    rc = cli.main(["replay", str(data["companion"]), "-o", str(tmp_path / "o"), "--max-frames", "3", "--no-progress"])
+    assert rc == 0 and capsys.readouterr().err == ""
+    m = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert m["config"]["source"].endswith("meta.yaml")
+    (tmp_path / "c.yaml").write_text("mapper:\n  max_features: 30\nterrain:\n  cell_size_m: 0.5\n")
+    rc = cli.main(["replay", str(data["companion"]), "-o", str(tmp_path / "p"), "--max-frames", "3", "--no-progress",
+                   "--config", str(tmp_path / "c.yaml")])
+    m = json.loads((tmp_path / "p" / "metrics.json").read_text())
+    assert rc == 0 and m["config"]["max_features"] == 30 and m["map"]["cell_size_m"] == 0.5
+
+
+def test_export_leaves_out_frames_without_navigation(tmp_path):
+    folder = rs.write_companion(tmp_path / "r", rs.flight(n_frames=12), frames_after_s=0.0, telemetry_until_s=0.55)
+    counts = export_tum(open_recording(folder), tmp_path / "tum")
+    assert counts["written"] + counts["without_nav"] == 12 and counts["without_nav"] >= 5
+    assert len((tmp_path / "tum" / "poses.txt").read_text().splitlines()) == 1 + counts["written"]
