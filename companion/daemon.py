@@ -170,7 +170,7 @@ class Daemon:
         if path.exists():
             try:
                 grid = TerrainGrid.load_snapshot(path)
-                log.info("map: loaded %d tiles from %s", len(list(grid.keys)), path)
+                log.info("map: loaded %d tiles from %s", len(grid), path)
                 return grid
             except Exception as exc:  # noqa: BLE001 - a bad snapshot must not stop the vehicle
                 bad = path.with_name(path.name + f".bad-{int(time.time())}")
@@ -404,7 +404,7 @@ class Daemon:
         uptime = max(now - self._started, 1e-9)
         with self.grid_lock:
             grid = {
-                "tiles": len(list(self.grid.keys)),
+                "tiles": len(self.grid),
                 "observed_area_m2": round(float(self.grid.observed_area_m2()), 1),
                 "memory_bytes": int(self.grid.memory_bytes()),
                 "cell_size_m": self.grid.cell_size_m,

@@ -325,7 +325,7 @@ def _map_figure(path: Path, cells: CellHeights, cell_m: float, camera_path: np.n
     beyond it take the end colours."""
     heights, n0, e0, c = dense_heights(cells, cell_m, include_ne=camera_path)
     lo, hi = (np.percentile(cells.height, [1, 99]) if len(cells) else (None, None))
-    title = f"replay {recording.kind} {Path(recording.path).name}: {len(cells)} cells, {metrics['frames_processed']} frames"
+    title = f"{recording.kind} replay: {len(cells)} cells, {metrics['frames_processed']} frames"
     return height_map(path, heights, n0, e0, c, title, paths=[(camera_path, "camera path", (40, 40, 220))],
                       vmin=None if lo is None else float(lo), vmax=None if hi is None else float(hi))
 
@@ -338,7 +338,7 @@ def _error_figure(path: Path, cells: CellHeights, ref: CellHeights, cell_m: floa
     span = float(np.percentile(np.abs(err.height), 95)) if len(err) else 1.0
     span = max(span, 0.1)
     rmse = stats.get("rmse_m")
-    title = f"map - reference (m): RMSE {rmse:.2f} m over {stats['cells_compared']} cells" if rmse is not None else "map - reference: no common cell"
+    title = f"map - ref: RMSE {rmse:.2f} m" if rmse is not None else "map - ref: no common cell"
     return height_map(path, heights, n0, e0, c, title, paths=[(camera_path, "camera path", (40, 40, 220))], vmin=-span, vmax=span)
 
 

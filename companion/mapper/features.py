@@ -44,8 +44,8 @@ __all__ = [
 ]
 
 SOBEL_APERTURE = 3  # cornerHarris' derivative kernel; the response at a pixel sees block//2 + 1 around it
-# cornerSubPix: at most 5 iterations or a step below 0.03 px (measured: more buys < 0.005 px)
-_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 5, 0.03)
+# cornerSubPix: at most 3 iterations or a step below 0.05 px (measured: more buys < 0.005 px)
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 3, 0.05)
 
 _EMPTY_UV = np.zeros((0, 2))
 _EMPTY_SCORE = np.zeros(0)
@@ -391,8 +391,8 @@ class HarrisDetector:
         return self._border_mask
 
     def candidate_maxima(self, R: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Integer ``xy (K, 2)`` and ``score (K,)`` of the 3x3 local maxima of ``R`` above the
-        threshold inside the valid region, in raster order."""
+        """Flat pixel indices ``(K,)`` (``y * W + x``) and float32 responses ``(K,)`` of the 3x3
+        local maxima of ``R`` above the threshold inside the valid region, in raster order."""
         m, H, W = self.margin, self.height, self.width
         if valid is None:
             best = cv2.minMaxLoc(R[m : H - m, m : W - m])[1]
@@ -400,7 +400,7 @@ class HarrisDetector:
             best = cv2.minMaxLoc(R, valid)[1]
         threshold = max(self.cfg.harris_quality * best, self.cfg.harris_min_response)
         if not best > 0.0 or best < threshold:
-            return np.zeros((0, 2), np.int64), _EMPTY_SCORE
+            return np.zeros(0, np.int64), np.zeros(0, np.float32)
         # R >= max(3x3 neighbourhood, just above the threshold): a local maximum strictly above
         # it (so a flat response, R == threshold == 0, is never a corner)
         D = cv2.dilate(R, self._kernel3, dst=self._dilated)
@@ -418,12 +418,14 @@ class HarrisDetector:
         words = (self._words != 0).nonzero()[0]
         inside = (self._words[words].view(np.uint8) != 0).nonzero()[0]
         flat = words[inside >> 3] * 8 + (inside & 7)
-        ys, xs = np.divmod(flat, W)
-        return np.column_stack([xs, ys]), R.reshape(-1)[flat].astype(np.float64)
+        return flat, R.reshape(-1)[flat]
 
-    def refine(self, gray: np.ndarray, xy0: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Sub-pixel positions ``(N, 2)`` and ``inside (N,)``: ``False`` where the refined corner
-        lies outside the valid region (the true corner is in the margin: not a feature)."""
+    def refine(self, gray: np.ndarray, flat: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Sub-pixel positions ``(N, 2)`` of the candidates at flat pixel indices ``(N,)`` and
+        ``inside (N,)``: ``False`` where the refined corner lies outside the valid region (the
+        true corner is in the margin: not a feature)."""
+        y0, x0 = np.divmod(flat, self.width)
+        xy0 = np.column_stack([x0, y0])
         w = self.cfg.subpix_window_px
         if w <= 0 or len(xy0) == 0:
             return xy0.astype(np.float64), np.ones(len(xy0), bool)
@@ -450,27 +452,27 @@ class HarrisDetector:
             return _EMPTY_UV.copy(), _EMPTY_SCORE.copy()  # no pixel is far enough from the edges
         R = self.harris_response(gray)
         valid = self.valid_region(gray)
-        xy, score = self.candidate_maxima(R, valid)
-        self.n_candidates = len(xy)
-        if len(xy) == 0:
+        flat, score = self.candidate_maxima(R, valid)
+        self.n_candidates = len(flat)
+        if len(flat) == 0:
             return _EMPTY_UV.copy(), _EMPTY_SCORE.copy()
         # Refine first, then select on the refined positions, so that every rule holds for what
         # is returned. Only the strongest T candidates are refined; as in select_features, more
         # are taken (and only those refined) when they cannot fill max_detections.
-        cfg, K = self.cfg, len(xy)
+        cfg, K = self.cfg, len(flat)
         T = min(K, _first_batch(cfg))
         order = strongest(score, T)
-        uv, inside = self.refine(gray, xy[order], valid)
+        uv, inside = self.refine(gray, flat[order], valid)
         while True:
             ok = np.flatnonzero(inside)
             keep = ok[select_ordered(uv[ok], cfg, self.width, self.height)]
             if len(keep) >= cfg.max_detections or T == K:
-                return uv[keep], score[order[keep]]
+                return uv[keep], score[order[keep]].astype(np.float64)
             # take as many more as this batch's yield says are needed (refining costs ~1 us each)
             done = T
             T = min(K, 4 * T, max(T + 16, int(1.25 * T * cfg.max_detections / max(len(keep), 1))))
             order = strongest(score, T)  # the first `done` are the ones refined already
-            more, more_inside = self.refine(gray, xy[order[done:]], valid)
+            more, more_inside = self.refine(gray, flat[order[done:]], valid)
             uv, inside = np.concatenate([uv, more]), np.concatenate([inside, more_inside])
 
 

@@ -215,7 +215,7 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--origin-delay", type=float, metavar="S", help="EKF origin / GPS fix this long after boot")
     p.add_argument("--home", metavar="LAT,LON,ALT",
                    help="override the scenario's home (deg, deg, m AMSL); write --home=-35.36,149.17,584 for a negative latitude")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any sim.* key, e.g. nav_pos_tau_s=2")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any sim.* key, e.g. nav_vel_sigma_mps=0.5")
     p.add_argument("--duration", type=float, metavar="S", help="stop after this many simulated seconds")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
 
