@@ -185,6 +185,7 @@ class ControlConfig:
     commanding_enabled: bool = _f(False, doc="false = advisory: publish the setpoint, command nothing")
     allow_arm: bool = _f(False, doc="the service may arm the vehicle (sim/demo only)")
     allow_mode_change: bool = _f(False, doc="the service may switch to GUIDED / OFFBOARD (sim/demo only)")
+    min_alt_m: float = _f(5.0, "m", -1e4, 1e4, "no setpoints below this altitude (local frame): takeoff and landing stay the autopilot's")
     cruise_speed_mps: float = _f(6.0, "m/s", 0.0, 50.0)
     waypoints_ne_m: tuple[tuple[float, float], ...] = _f((), "m", doc="horizontal route (north, east) flown when commanding")
 

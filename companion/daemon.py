@@ -35,6 +35,7 @@ import numpy as np
 from companion.avoidance import AvoidanceCommand, PullUpLaw
 from companion.clock import Clock
 from companion.config import CompanionConfig, ConfigError, load_config
+from companion.config import replace as replace_config
 from companion.geometry import camera_from_config
 from companion.guidance import WaypointGuidance
 from companion.mapper import Mapper
@@ -48,6 +49,8 @@ log = logging.getLogger("companion")
 SNAPSHOT_NAME = "terrain.snapshot"
 # MAV_SEVERITY values used in STATUSTEXT.
 SEVERITY_WARNING, SEVERITY_NOTICE, SEVERITY_INFO = 4, 5, 6
+# Minimum time (companion seconds) between avoidance engaged/released STATUSTEXTs.
+STATUSTEXT_HOLD_S = 5.0
 
 
 class _Shutdown(Exception):
@@ -113,6 +116,9 @@ class Daemon:
                 "'control.waypoints_ne_m' needs at least two waypoints when 'control.commanding_enabled' is true: "
                 "the service owns the whole velocity setpoint in GUIDED/OFFBOARD and must know where to fly"
             )
+        if cfg.camera.source == "synthetic" and not cfg.link.request_sim_state:
+            # The synthetic camera renders at the simulator's true pose, which arrives as SIM_STATE.
+            cfg = replace_config(cfg, **{"link.request_sim_state": True})
         self.cfg = cfg
         self.clock = clock or Clock(cfg.sim.speedup)
         self.link = AutopilotLink(cfg, self.clock)
@@ -158,6 +164,7 @@ class Daemon:
         self._latency_frame_t: float | None = None
         self.command_state = "starting"
         self.engaged = False
+        self._engaged_changed_t = -math.inf
         self.snapshot_ok_t: float | None = None
         self.snapshot_error = ""
         self.snapshot_failures = 0
@@ -237,11 +244,12 @@ class Daemon:
             try:
                 frame = await self.camera.read()
             except CameraError as exc:
-                if lost_since is None:
+                if lost_since is None and self.frames_in > 0:
                     lost_since = self.clock.now()
                     log.warning("camera lost: %s", exc)
                     self.link.send_statustext(SEVERITY_WARNING, "companion: camera lost")
-                self.camera_state, self.camera_error = "lost", str(exc)
+                self.camera_state = "lost" if self.frames_in > 0 else "waiting"
+                self.camera_error = str(exc)
                 await self.clock.sleep(min(1.0, 2.0 / self.cfg.camera.rate_hz))
                 continue
             except (EndOfStream, CorruptInput) as exc:
@@ -343,11 +351,18 @@ class Daemon:
         else:
             horizontal = nav.velocity_ned_mps[:2]
         velocity = np.array([horizontal[0], horizontal[1], -cmd.climb_rate_mps])
-        sent = self.link.send_setpoint(velocity, yaw_rad=yaw)
-        record = self.link.last_setpoint
-        self.command_state = "commanding" if sent else f"advisory ({record.reason if record else 'not sent'})"
-        if cmd.engaged != self.engaged:
+        if nav.altitude_m < self.cfg.control.min_alt_m:
+            # Takeoff and landing belong to the autopilot: a velocity setpoint would cancel them.
+            sent = False
+            self.command_state = f"advisory (below control.min_alt_m = {self.cfg.control.min_alt_m:g} m)"
+        else:
+            sent = self.link.send_setpoint(velocity, yaw_rad=yaw)
+            record = self.link.last_setpoint
+            self.command_state = "commanding" if sent else f"advisory ({record.reason if record else 'not sent'})"
+        if cmd.engaged != self.engaged and now - self._engaged_changed_t >= STATUSTEXT_HOLD_S:
+            # Held for a few seconds so a law that flickers at the threshold does not flood the GCS.
             self.engaged = cmd.engaged
+            self._engaged_changed_t = now
             if cmd.engaged:
                 text = f"companion: avoid {cmd.limiting_height_m:.0f}m terrain, climb {cmd.climb_rate_mps:.1f}"
                 log.warning("avoidance engaged: terrain %.1f m at %s, climb %.2f m/s (%s)",

@@ -136,7 +136,7 @@ def test_sqrt_controller_is_odd_monotone_and_never_demands_more_than_the_braking
     assert sqrt_controller(-e, k, a) == pytest.approx(-v)
     assert abs(v) <= k * abs(e) + 1e-9  # never faster than the linear law
     assert abs(v) <= math.sqrt(2 * a * abs(e)) + 1e-9  # can stop within the remaining distance
-    assert abs(sqrt_controller(e + 1e-3, k, a)) >= abs(v) - 1e-9 if e >= 0 else True
+    assert sqrt_controller(e + 1e-3, k, a) >= v - 1e-12  # monotone
 
 
 # ---- navigation error ------------------------------------------------------------------------------
@@ -385,3 +385,22 @@ def test_ardupilot_body_frame_velocity_and_global_position_targets():
     ap.handle(_msg(tgt), link)
     ap.run_for(25.0)
     assert np.linalg.norm(ap.estimate()["p"] - [20.0, 0.0, -12.0]) < 0.3
+
+
+def test_ardupilot_rtl_climbs_returns_home_lands_and_disarms():
+    ap = ArduPilotCopter(replace(SimConfig(), origin_delay_s=0.2))
+    link = _Link()
+    ap.run_for(0.5)
+    _fly_guided(ap, link, 10.0)  # circles at 3 m/s, 8 m up, some tens of metres from home
+    assert math.hypot(*ap.vehicle.p[:2]) > 5.0
+    assert _cmd(ap, link, mav.MAV_CMD_NAV_RETURN_TO_LAUNCH) == mav.MAV_RESULT_ACCEPTED
+    assert ap.build(mav.MAVLINK_MSG_ID_HEARTBEAT).custom_mode == 6
+    top = 0.0
+    for _ in range(900):
+        ap.run_for(0.1)
+        top = max(top, -ap.vehicle.p[2])
+        if not ap.armed:
+            break
+    assert top > 14.5  # climbed to RTL_ALT (15 m) first
+    assert not ap.armed and ap.landed
+    assert math.hypot(*ap.estimate()["p"][:2]) < 1.0  # landed at home (in the estimate's frame)

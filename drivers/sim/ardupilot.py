@@ -255,13 +255,8 @@ class ArduPilotCopter(SimAutopilot):
             self.stop_guided()  # unknown altitude frame: input is not valid, stop
             return
         alt = msg.alt + (self.home.alt_m - self.home.start_down_m if rel else 0.0)
-        n, e, d = self.home.global_to_ned(msg.lat_int * 1e-7, msg.lon_int * 1e-7, alt)
-
-        class _Local:  # the same fields as SET_POSITION_TARGET_LOCAL_NED, in the local frame
-            type_mask, coordinate_frame = msg.type_mask, mav.MAV_FRAME_LOCAL_NED
-            x, y, z, vx, vy, vz, afx, afy, afz, yaw, yaw_rate = n, e, d, msg.vx, msg.vy, msg.vz, msg.afx, msg.afy, msg.afz, msg.yaw, msg.yaw_rate
-
-        self._guided_target(self.decode_position_target(_Local))
+        ned = self.home.global_to_ned(msg.lat_int * 1e-7, msg.lon_int * 1e-7, alt)
+        self._guided_target(self.decode_position_target(msg, local_position=ned))
 
     def stop_guided(self) -> None:
         """ModeGuided::init(true): invalid input stops the vehicle where it is."""

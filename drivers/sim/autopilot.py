@@ -25,7 +25,7 @@ import logging
 import math
 import struct
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mav
@@ -421,10 +421,10 @@ class SimAutopilot:
             return
         try:
             handler(msg, link)
-        except (ValueError, TypeError, OverflowError, struct.error) as exc:
-            # a malformed message is counted and dropped; it never stops the vehicle
+        except Exception as exc:  # noqa: BLE001 - one bad input must not stop the vehicle
+            # a malformed message (or a value this simulator cannot take) is counted and dropped
             self.unhandled["BAD_" + name] += 1
-            log.warning("t=%.2f could not handle %s from %s: %s", self.t_s, name, src, exc)
+            log.warning("t=%.2f could not handle %s from %s: %s: %s", self.t_s, name, src, type(exc).__name__, exc)
 
     def on_heartbeat(self, msg, link) -> None:
         if msg.type == mav.MAV_TYPE_GCS or msg.autopilot == mav.MAV_AUTOPILOT_INVALID:
@@ -533,15 +533,20 @@ class SimAutopilot:
 
     # ---- setpoints ----------------------------------------------------------------------------
 
-    def decode_position_target(self, msg) -> PositionTarget:
-        """SET_POSITION_TARGET_LOCAL_NED -> NED target (frames and type_mask applied per axis)."""
+    def decode_position_target(self, msg, local_position=None) -> PositionTarget:
+        """SET_POSITION_TARGET_LOCAL_NED -> NED target (frames and type_mask applied per axis).
+
+        ``local_position``: (n, e, d) replacing msg.x/y/z, for a SET_POSITION_TARGET_GLOBAL_INT
+        already converted to the local frame (its frame is then taken as LOCAL_NED).
+        """
         m = msg.type_mask
-        pos = [NAN if m & IGNORE_PX else msg.x, NAN if m & IGNORE_PY else msg.y, NAN if m & IGNORE_PZ else msg.z]
+        x, y, z = local_position if local_position is not None else (msg.x, msg.y, msg.z)
+        pos = [NAN if m & IGNORE_PX else x, NAN if m & IGNORE_PY else y, NAN if m & IGNORE_PZ else z]
         vel = [NAN if m & IGNORE_VX else msg.vx, NAN if m & IGNORE_VY else msg.vy, NAN if m & IGNORE_VZ else msg.vz]
         acc = [NAN if m & IGNORE_AX else msg.afx, NAN if m & IGNORE_AY else msg.afy, NAN if m & IGNORE_AZ else msg.afz]
         yaw = NAN if m & IGNORE_YAW else msg.yaw
         yaw_rate = NAN if m & IGNORE_YAW_RATE else msg.yaw_rate
-        frame = msg.coordinate_frame
+        frame = mav.MAV_FRAME_LOCAL_NED if local_position is not None else msg.coordinate_frame
         est = self.estimate()
         if frame in (mav.MAV_FRAME_BODY_NED, mav.MAV_FRAME_BODY_OFFSET_NED):
             # body frames: x forward / y right in the horizontal plane, rotated by heading

@@ -93,6 +93,7 @@ class VehicleProcess:
         self.duration_s = duration_s
         self.offset_s = 0.0     # simulated seconds the simulation has fallen behind the clock
         self.slips = 0
+        self.build_errors = 0
 
     def _serve_inbound(self) -> None:
         for link in self.links.values():
@@ -116,7 +117,13 @@ class VehicleProcess:
         for link in self.links.values():
             for msg_id in link.schedule.pop_due(t):
                 if link.connected:
-                    msg = self.ap.build(msg_id)
+                    try:
+                        msg = self.ap.build(msg_id)
+                    except Exception:  # noqa: BLE001 - a broken builder must not stop the others
+                        self.build_errors += 1
+                        log.exception("could not build message %d", msg_id)
+                        link.schedule.set_interval(msg_id, None, t)
+                        continue
                     if msg is not None:
                         link.send(msg)
 
