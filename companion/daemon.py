@@ -430,7 +430,7 @@ class Daemon:
             "problems": problems,
             "uptime_s": round(uptime, 1),
             "command": self.command_state,
-            "link": link,
+            **link,  # link, streams, rates_hz, nav, time, rejected, commanding, truth (docs/mavlink.md)
             "camera": {
                 "state": self.camera_state, "error": self.camera_error, "frames": self.frames_in,
                 "queue_dropped": self.frames.dropped,

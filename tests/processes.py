@@ -62,18 +62,6 @@ def stop(proc: subprocess.Popen, timeout_s: float = 5.0, sig=signal.SIGTERM) -> 
     return proc.returncode
 
 
-def start_sim(tmp: Path, *, tcp_port: int = 0, udp_out: int | None = None, speedup: float = 3.0,
-              extra: tuple[str, ...] = ()) -> tuple[subprocess.Popen, int]:
-    """The simulated vehicle (ArduPilot flavour); returns the process and its TCP port."""
-    args = ["sim", "--scenario", "default", "--tcp-listen", f"127.0.0.1:{tcp_port}", "--speedup", str(speedup),
-            "--origin-delay", "1", *extra]
-    if udp_out:
-        args += ["--udp-out", f"127.0.0.1:{udp_out}"]
-    proc = companion(*args, log=tmp / f"sim-{time.monotonic_ns()}.log")
-    line = read_line_starting(proc, "LISTENING tcp", 20)
-    return proc, int(line.rsplit(":", 1)[1])
-
-
 class ZenohListener:
     """A plain Zenoh session that collects the JSON and tile samples a vehicle publishes."""
 

@@ -1,0 +1,241 @@
+"""The daemon as a real process: systemd notifications, clean shutdown with the map saved and
+reloaded, a camera that ends, a vehicle that dies and comes back, and the end-to-end flight
+(simulated vehicle + daemon + Zenoh subscriber over loopback)."""
+
+from __future__ import annotations
+
+import signal
+import socket
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from companion.messages import TerrainPoints
+from companion.terrain.codec import decode_tile
+from companion.terrain.grid import TerrainGrid
+from drivers.sim.harness import MavClient, SimVehicleProcess
+from drivers.sim.world import World
+from tests.processes import ZenohListener, companion, free_port, stop, write_config
+
+pytestmark = pytest.mark.slow
+
+CIRCUIT = [[0.0, 0.0], [200.0, 0.0], [200.0, 60.0], [0.0, 60.0]]
+
+
+def daemon_config(tmp: Path, link: str, **sections) -> dict:
+    doc = {
+        "link": {"connection": link, "heartbeat_timeout_s": 1.5, "reconnect_backoff_max_s": 0.5},
+        "camera": {"source": "synthetic", "rate_hz": 15.0},
+        "zenoh": {"enabled": False},
+        "persistence": {"directory": str(tmp / "map"), "snapshot_interval_s": 2.0},
+        "sim": {"scenario": "default", "speedup": 1.0},
+    }
+    for name, values in sections.items():
+        doc.setdefault(name, {}).update(values)
+    return doc
+
+
+def notify_socket(tmp: Path) -> socket.socket:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    s.bind(str(tmp / "notify.sock"))
+    s.settimeout(0.5)
+    return s
+
+
+def receive_until(sock: socket.socket, wanted: str, timeout_s: float) -> list[str]:
+    seen = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            msg = sock.recv(4096).decode()
+        except TimeoutError:
+            continue
+        seen.append(msg)
+        if wanted in msg.split("\n"):
+            return seen
+    raise TimeoutError(f"no {wanted} within {timeout_s} s; got {seen}")
+
+
+def seeded_grid() -> TerrainGrid:
+    grid = TerrainGrid(1.0, 32)
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(-20, 60, 400), rng.uniform(-20, 60, 400), -rng.uniform(0, 5, 400)])
+    grid.insert(TerrainPoints(0.0, pts, np.tile(np.diag([0.01, 0.01, 0.04]), (400, 1, 1))))
+    return grid
+
+
+def test_ready_watchdog_and_sigterm_saves_and_reloads_the_map(tmp_path):
+    """Type=notify: READY then WATCHDOG from the control loop; SIGTERM: STOPPING, exit 0 within 2 s, and the
+    map (loaded from the previous snapshot) saved again, bit for bit."""
+    grid = seeded_grid()
+    (tmp_path / "map").mkdir()
+    snapshot = tmp_path / "map" / "terrain.snapshot"
+    grid.save_snapshot(snapshot)
+    cfg = write_config(tmp_path / "c.yaml", daemon_config(tmp_path, f"udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}"))
+    sock = notify_socket(tmp_path)
+    proc = companion("run", "--config", str(cfg), env={"NOTIFY_SOCKET": str(tmp_path / "notify.sock"),
+                                                       "WATCHDOG_USEC": "1000000"}, log=tmp_path / "daemon.log")
+    try:
+        receive_until(sock, "READY=1", 30)
+        receive_until(sock, "WATCHDOG=1", 5)
+        snapshot.unlink()  # it must be written again at shutdown
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(10)
+        elapsed = time.monotonic() - t0
+        receive_until(sock, "STOPPING=1", 1)
+    finally:
+        stop(proc)
+        sock.close()
+    print(f"shutdown took {elapsed:.2f} s")
+    assert rc == 0 and elapsed < 2.5
+    log = (tmp_path / "daemon.log").read_text()
+    assert f"loaded {len(grid)} tiles" in log
+    reloaded = TerrainGrid.load_snapshot(snapshot)
+    assert sorted(reloaded.keys()) == sorted(grid.keys())
+    for key in grid.keys():
+        a, b = grid.tile(key), reloaded.tile(key)
+        np.testing.assert_array_equal(a.height, b.height)
+        np.testing.assert_array_equal(a.variance, b.variance)
+        np.testing.assert_array_equal(a.count, b.count)
+
+
+def test_refuses_to_start_on_a_bad_config(tmp_path):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("control:\n  comanding_enabled: true\n")
+    proc = companion("run", "--config", str(cfg), log=tmp_path / "daemon.log")
+    assert proc.wait(30) == 2
+    assert "control.comanding_enabled" in (tmp_path / "daemon.log").read_text()
+
+
+def write_video(path: Path, frames: int = 12) -> None:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 15.0, (640, 480), isColor=False)
+    rng = np.random.default_rng(0)
+    for _ in range(frames):
+        writer.write(rng.integers(0, 255, (480, 640), dtype=np.uint8))
+    writer.release()
+
+
+def take_off(pilot: MavClient, altitude_m: float = 15.0, timeout_s: float = 40.0) -> None:
+    """The operator's part (the service never arms): GUIDED, arm, take off, wait until airborne."""
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    pilot.wait_heartbeat(10)
+    pilot.set_interval(mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 10)
+    assert pilot.recv("LOCAL_POSITION_NED", 20) is not None, "EKF origin never set"
+    pilot.command(mav.MAV_CMD_DO_SET_MODE, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4)  # GUIDED
+    ack = pilot.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+    assert ack is not None and ack.result == 0
+    ack = pilot.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, altitude_m)
+    assert ack is not None and ack.result == 0
+    assert pilot.recv("LOCAL_POSITION_NED", timeout_s, lambda m: -m.z > 6.0) is not None, "never got airborne"
+
+
+def test_camera_end_and_vehicle_restart_keep_the_service_alive(tmp_path):
+    """The recording ends: link and control loop go on and the status says so. The vehicle process is
+    killed: the link is reported lost, and when a vehicle is back on the same port the daemon reconnects."""
+    video = tmp_path / "short.avi"
+    write_video(video)
+    tcp = free_port()
+    zport = free_port()
+    sim_args = ["--scenario", "default", "--tcp-listen", f"127.0.0.1:{tcp}", "--origin-delay", "1"]
+    cfg = write_config(tmp_path / "c.yaml", daemon_config(
+        tmp_path, f"tcp:127.0.0.1:{tcp}",
+        camera={"source": "file", "path": str(video), "realtime": True, "rate_hz": 15.0},
+        zenoh={"enabled": True, "listen": [f"tcp/127.0.0.1:{zport}"], "status_rate_hz": 4.0},
+    ))
+    sim = SimVehicleProcess(sim_args, stderr_path=str(tmp_path / "sim1.log")).start()
+    daemon = companion("run", "--config", str(cfg), log=tmp_path / "daemon.log")
+    listener = None
+    try:
+        listener = ZenohListener(f"tcp/127.0.0.1:{zport}")
+        ended = listener.wait_status(lambda s: s["camera"]["state"] == "ended" and s["link"]["state"] == "connected", 40)
+        later = listener.wait_status(lambda s: s["control"]["ticks"] > ended["control"]["ticks"] + 10, 10)
+        assert later["health"] == "degraded" and any("camera ended" in p for p in later["problems"])
+        assert later["link"]["state"] == "connected"
+
+        sim.stop()  # the vehicle dies
+        lost = listener.wait_status(lambda s: s["link"]["state"] != "connected", 15)
+        assert any("autopilot link" in p for p in lost["problems"])
+        sim = SimVehicleProcess(sim_args, stderr_path=str(tmp_path / "sim2.log")).start()
+        back = listener.wait_status(lambda s: s["link"]["state"] == "connected", 30)
+        assert back["link"]["reconnects"] >= 1 or back["link"]["connects"] >= 2
+        assert daemon.poll() is None
+    finally:
+        if listener:
+            listener.close()
+        assert stop(daemon) == 0
+        sim.stop()
+
+
+def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path):
+    """Simulated vehicle + daemon + Zenoh subscriber, all real processes on loopback. The vehicle flies the
+    default circuit's first leg toward the 12 m building; the daemon maps it and commands a climb before
+    reaching it; the subscriber's tiles agree with the world."""
+    world = World.load("default")
+    building = next(o for o in world.obstacles if o.name == "building")
+    zport = free_port()
+    speedup = 3.0
+    pilot = MavClient.udp_listener()
+    sim = SimVehicleProcess(["--scenario", "default", "--tcp-listen", "127.0.0.1:0",
+                             "--udp-out", f"127.0.0.1:{pilot.port}", "--speedup", str(speedup), "--origin-delay", "1"],
+                            stderr_path=str(tmp_path / "sim.log")).start()
+    cfg = write_config(tmp_path / "c.yaml", daemon_config(
+        tmp_path, f"tcp:127.0.0.1:{sim.endpoints['tcp']}",
+        control={"commanding_enabled": True, "waypoints_ne_m": CIRCUIT, "cruise_speed_mps": 6.0},
+        zenoh={"enabled": True, "listen": [f"tcp/127.0.0.1:{zport}"], "status_rate_hz": 2.0},
+        sim={"scenario": "default", "speedup": speedup},
+    ))
+    daemon = companion("run", "--config", str(cfg), log=tmp_path / "daemon.log")
+    listener = None
+    try:
+        listener = ZenohListener(f"tcp/127.0.0.1:{zport}")
+        take_off(pilot)
+        early_climb = None
+        track = []
+        deadline = time.monotonic() + 90
+        north = alt = 0.0
+        while time.monotonic() < deadline:
+            msg = pilot.recv("LOCAL_POSITION_NED", 1.0)
+            if msg is not None:
+                north, alt = msg.x, -msg.z
+            while not listener.avoidance.empty():
+                a = listener.avoidance.get()
+                cell = a.get("limiting_cell")
+                track.append((round(north, 1), round(alt, 1), a["engaged"], cell, a["climb_rate_mps"], a["reason"]))
+                if (early_climb is None and a["engaged"] and cell is not None and a["climb_rate_mps"] > 0.5
+                        and north < building.footprint_ne_m[:, 0].min() - 5
+                        and building.footprint_ne_m[:, 0].min() - 3 <= cell[0] <= building.footprint_ne_m[:, 0].max() + 3):
+                    early_climb = (north, alt, a)
+            if north > building.footprint_ne_m[:, 0].max() + 5:
+                break
+        status = listener.wait_status(lambda s: True, 5)
+    finally:
+        if listener:
+            listener.close()
+        rc = stop(daemon)
+        sim.stop()
+        pilot.close()
+    assert rc == 0
+    print("\n".join(map(str, track[::20])))
+    assert early_climb is not None, "no climb commanded for the building before reaching it"
+    print(f"climb commanded at north {early_climb[0]:.1f} m (building starts at "
+          f"{building.footprint_ne_m[:, 0].min():.0f} m), altitude {early_climb[1]:.1f} m: {early_climb[2]}")
+    # The subscriber's tiles against the world's true heights.
+    errors = []
+    for payload in listener.tiles.values():
+        tile = decode_tile(payload)
+        n = tile.height.shape[0]
+        ii, jj = np.nonzero(tile.count > 0)
+        north_m = (tile.tx * n + ii + 0.5) * tile.cell_size_m
+        east_m = (tile.ty * n + jj + 0.5) * tile.cell_size_m
+        errors.append(tile.height[ii, jj] - world.terrain_height(north_m, east_m))
+    err = np.concatenate(errors)
+    print(f"{len(listener.tiles)} tiles, {err.size} cells: median |error| {np.median(np.abs(err)):.2f} m, "
+          f"90th percentile {np.percentile(np.abs(err), 90):.2f} m; control {status['control']}")
+    assert err.size > 200
+    assert np.median(np.abs(err)) < 0.5
+    assert np.percentile(np.abs(err), 90) < 2.0
