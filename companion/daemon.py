@@ -359,7 +359,8 @@ class Daemon:
             sent = self.link.send_setpoint(velocity, yaw_rad=yaw)
             record = self.link.last_setpoint
             self.command_state = "commanding" if sent else f"advisory ({record.reason if record else 'not sent'})"
-        if cmd.engaged != self.engaged and now - self._engaged_changed_t >= STATUSTEXT_HOLD_S:
+        airborne = nav.altitude_m >= self.cfg.control.min_alt_m
+        if airborne and cmd.engaged != self.engaged and now - self._engaged_changed_t >= STATUSTEXT_HOLD_S:
             # Held for a few seconds so a law that flickers at the threshold does not flood the GCS.
             self.engaged = cmd.engaged
             self._engaged_changed_t = now

@@ -239,3 +239,59 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path):
     assert err.size > 200
     assert np.median(np.abs(err)) < 0.5
     assert np.percentile(np.abs(err), 90) < 2.0
+
+
+def grid_cells(grid: TerrainGrid) -> dict[tuple[int, int], float]:
+    """{(north index, east index): height} of every cell with evidence."""
+    cells = {}
+    for tile in grid.tiles():
+        n = tile.height.shape[0]
+        for i, j in zip(*np.nonzero(tile.count > 0)):
+            cells[(tile.tx * n + int(i), tile.ty * n + int(j))] = float(tile.height[i, j])
+    return cells
+
+
+def test_recorded_flight_replays_to_the_same_map_also_after_tum_export(tmp_path):
+    """`companion run --record DIR` during a real (simulated) flight, then the documented commands:
+    `companion replay DIR`, `companion replay DIR --export-tum TUM`, `companion replay TUM`. The TUM
+    replay gives the recording's map exactly; the replay agrees with the live map on the cells both have."""
+    pilot = MavClient.udp_listener()
+    speedup = 3.0
+    sim = SimVehicleProcess(["--scenario", "default", "--tcp-listen", "127.0.0.1:0",
+                             "--udp-out", f"127.0.0.1:{pilot.port}", "--speedup", str(speedup), "--origin-delay", "1"],
+                            stderr_path=str(tmp_path / "sim.log")).start()
+    cfg = write_config(tmp_path / "c.yaml", daemon_config(
+        tmp_path, f"tcp:127.0.0.1:{sim.endpoints['tcp']}",
+        control={"commanding_enabled": True, "waypoints_ne_m": CIRCUIT, "cruise_speed_mps": 6.0},
+        sim={"scenario": "default", "speedup": speedup},
+    ))
+    rec = tmp_path / "rec"
+    daemon = companion("run", "--config", str(cfg), "--record", str(rec), log=tmp_path / "daemon.log")
+    try:
+        take_off(pilot)
+        pilot.recv("LOCAL_POSITION_NED", 60, lambda m: m.x > 60.0)
+    finally:
+        rc = stop(daemon)
+        sim.stop()
+        pilot.close()
+    assert rc == 0
+    frames = len((rec / "frames.csv").read_text().splitlines()) - 1
+    assert frames > 100 and (rec / "telemetry.tlog").stat().st_size > 10_000
+
+    for args in (["replay", str(rec), "--output", str(tmp_path / "replay"), "--no-progress"],
+                 ["replay", str(rec), "--export-tum", str(tmp_path / "tum")],
+                 ["replay", str(tmp_path / "tum"), "--output", str(tmp_path / "replay_tum"), "--no-progress"]):
+        proc = companion(*args, log=tmp_path / "replay.log")
+        assert proc.wait(180) == 0, (tmp_path / "replay.log").read_text()[-2000:]
+
+    live = grid_cells(TerrainGrid.load_snapshot(tmp_path / "map" / "terrain.snapshot"))
+    replayed = grid_cells(TerrainGrid.load_snapshot(tmp_path / "replay" / "terrain.snapshot"))
+    from_tum = grid_cells(TerrainGrid.load_snapshot(tmp_path / "replay_tum" / "terrain.snapshot"))
+    assert replayed.keys() == from_tum.keys()
+    assert max(abs(replayed[k] - from_tum[k]) for k in replayed) < 0.01
+    common = live.keys() & replayed.keys()
+    diff = np.array([replayed[k] - live[k] for k in common])
+    print(f"{frames} frames recorded; live map {len(live)} cells, replay {len(replayed)} cells, {len(common)} in common; "
+          f"median |replay - live| {np.median(np.abs(diff)):.3f} m, 90th percentile {np.percentile(np.abs(diff), 90):.3f} m")
+    assert len(common) > 0.6 * min(len(live), len(replayed))
+    assert np.median(np.abs(diff)) < 0.3
