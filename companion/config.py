@@ -175,6 +175,7 @@ class AvoidanceConfig:
     nominal_time_constant_s: float = _f(1.5, "s", 0.05, 60.0, "near the nominal altitude the return is exponential with this time constant")
     hover_speed_mps: float = _f(0.3, "m/s", 0.0, 10.0, "below this horizontal speed the look-ahead is a disc around the vehicle")
     unknown_fill_m: float = _f(5.0, "m", 0.0, 1000.0, "an unmapped cell is taken as high as the highest mapped cell within this along-track distance in the corridor")
+    enabled: bool = _f(True, doc="false = command the nominal altitude only; the law is still evaluated and published (demo --no-avoid)")
 
 
 @dataclass(frozen=True, slots=True)

@@ -350,7 +350,10 @@ class Daemon:
             self.lap = out.lap
         else:
             horizontal = nav.velocity_ned_mps[:2]
-        velocity = np.array([horizontal[0], horizontal[1], -cmd.climb_rate_mps])
+        climb = cmd.climb_rate_mps
+        if not self.cfg.avoidance.enabled:  # nominal altitude only (demo --no-avoid); the law is still published
+            climb = min(max(cmd.nominal_climb_mps, -self.cfg.avoidance.max_descent_mps), self.cfg.avoidance.max_climb_mps)
+        velocity = np.array([horizontal[0], horizontal[1], -climb])
         if nav.altitude_m < self.cfg.control.min_alt_m:
             # Takeoff and landing belong to the autopilot: a velocity setpoint would cancel them.
             sent = False

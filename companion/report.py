@@ -311,7 +311,8 @@ def first_detection_time(t_s: np.ndarray, mapped_m: np.ndarray, threshold_m: flo
 @dataclass(frozen=True, slots=True)
 class MapError:
     """Observed cells against the truth at their centres (map - truth, m): RMSE, bias, the share
-    within 1 m, the 95th percentile of |error| and the largest error; ``cells`` compared."""
+    within 1 m, the 95th percentile of |error| and the largest error; ``cells`` compared and
+    ``over_3m`` of them mapped more than 3 m above the truth (phantom obstacles)."""
 
     rmse_m: float
     bias_m: float
@@ -319,6 +320,7 @@ class MapError:
     p95_abs_m: float
     max_abs_m: float
     cells: int
+    over_3m: int = 0
 
 
 def map_error(raster: MapRaster, terrain_fn: TerrainFn, min_count: int = 1) -> MapError:
@@ -333,7 +335,7 @@ def map_error(raster: MapRaster, terrain_fn: TerrainFn, min_count: int = 1) -> M
     err = raster.height[observed] - truth
     a = np.abs(err)
     return MapError(float(np.sqrt(np.mean(err * err))), float(np.mean(err)), float(np.mean(a <= 1.0)),
-                    float(np.quantile(a, 0.95)), float(a.max()), int(err.size))
+                    float(np.quantile(a, 0.95)), float(a.max()), int(err.size), int(np.count_nonzero(err > 3.0)))
 
 
 # --------------------------------------------------------------------------------------------
