@@ -171,6 +171,21 @@ def test_camera_end_and_vehicle_restart_keep_the_service_alive(tmp_path):
         sim.stop()
 
 
+def start_flight(tmp: Path, speedup: float, *daemon_args: str, **sections):
+    """A simulated vehicle with an operator's pymavlink link, and the daemon commanding the circuit."""
+    pilot = MavClient.udp_listener()
+    sim = SimVehicleProcess(["--scenario", "default", "--tcp-listen", "127.0.0.1:0",
+                             "--udp-out", f"127.0.0.1:{pilot.port}", "--speedup", str(speedup), "--origin-delay", "1"],
+                            stderr_path=str(tmp / "sim.log")).start()
+    cfg = write_config(tmp / "c.yaml", daemon_config(
+        tmp, f"tcp:127.0.0.1:{sim.endpoints['tcp']}",
+        control={"commanding_enabled": True, "waypoints_ne_m": CIRCUIT, "cruise_speed_mps": 6.0},
+        sim={"scenario": "default", "speedup": speedup}, **sections,
+    ))
+    daemon = companion("run", "--config", str(cfg), *daemon_args, log=tmp / "daemon.log")
+    return pilot, sim, daemon
+
+
 def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path):
     """Simulated vehicle + daemon + Zenoh subscriber, all real processes on loopback. The vehicle flies the
     default circuit's first leg toward the 12 m building; the daemon maps it and commands a climb before
@@ -178,18 +193,8 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path):
     world = World.load("default")
     building = next(o for o in world.obstacles if o.name == "building")
     zport = free_port()
-    speedup = 3.0
-    pilot = MavClient.udp_listener()
-    sim = SimVehicleProcess(["--scenario", "default", "--tcp-listen", "127.0.0.1:0",
-                             "--udp-out", f"127.0.0.1:{pilot.port}", "--speedup", str(speedup), "--origin-delay", "1"],
-                            stderr_path=str(tmp_path / "sim.log")).start()
-    cfg = write_config(tmp_path / "c.yaml", daemon_config(
-        tmp_path, f"tcp:127.0.0.1:{sim.endpoints['tcp']}",
-        control={"commanding_enabled": True, "waypoints_ne_m": CIRCUIT, "cruise_speed_mps": 6.0},
-        zenoh={"enabled": True, "listen": [f"tcp/127.0.0.1:{zport}"], "status_rate_hz": 2.0},
-        sim={"scenario": "default", "speedup": speedup},
-    ))
-    daemon = companion("run", "--config", str(cfg), log=tmp_path / "daemon.log")
+    pilot, sim, daemon = start_flight(tmp_path, 3.0, zenoh={"enabled": True, "listen": [f"tcp/127.0.0.1:{zport}"],
+                                                            "status_rate_hz": 2.0})
     listener = None
     try:
         listener = ZenohListener(f"tcp/127.0.0.1:{zport}")
@@ -255,18 +260,8 @@ def test_recorded_flight_replays_to_the_same_map_also_after_tum_export(tmp_path)
     """`companion run --record DIR` during a real (simulated) flight, then the documented commands:
     `companion replay DIR`, `companion replay DIR --export-tum TUM`, `companion replay TUM`. The TUM
     replay gives the recording's map exactly; the replay agrees with the live map on the cells both have."""
-    pilot = MavClient.udp_listener()
-    speedup = 3.0
-    sim = SimVehicleProcess(["--scenario", "default", "--tcp-listen", "127.0.0.1:0",
-                             "--udp-out", f"127.0.0.1:{pilot.port}", "--speedup", str(speedup), "--origin-delay", "1"],
-                            stderr_path=str(tmp_path / "sim.log")).start()
-    cfg = write_config(tmp_path / "c.yaml", daemon_config(
-        tmp_path, f"tcp:127.0.0.1:{sim.endpoints['tcp']}",
-        control={"commanding_enabled": True, "waypoints_ne_m": CIRCUIT, "cruise_speed_mps": 6.0},
-        sim={"scenario": "default", "speedup": speedup},
-    ))
     rec = tmp_path / "rec"
-    daemon = companion("run", "--config", str(cfg), "--record", str(rec), log=tmp_path / "daemon.log")
+    pilot, sim, daemon = start_flight(tmp_path, 3.0, "--record", str(rec))
     try:
         take_off(pilot)
         pilot.recv("LOCAL_POSITION_NED", 60, lambda m: m.x > 60.0)
