@@ -28,6 +28,7 @@ error on and off); ``--laps 1``, ``--quick``, ``--param inverse_depth``, ``--nav
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -76,7 +77,10 @@ class RunSpec:
     navigation error (``cfg.sim`` sigmas) or fly with a perfect estimate. laps: circuits to fly
     (fractions allowed); ``stop_north_m`` ends the flight on the first leg once past this north
     coordinate instead (short tests). avoid: vertical speed from the pull-up law on the map being
-    built (else hold ``altitude_m``). overrides: dotted config keys (``{"mapper.sigma_rho": 0.1}``).
+    built (else hold ``altitude_m``). nav_covariance: "service" = what NavAssembler builds from the
+    ArduPilot messages (GPS accuracies, test ratios, floors), "injected" = the sim's own error
+    covariance (the truth about the error, for diagnosis). overrides: dotted config keys
+    (``(("mapper.sigma_rho", 0.1),)``).
     """
 
     parameterisation: str = "inverse_depth"
@@ -88,6 +92,7 @@ class RunSpec:
     seed: int = 1
     frame_rate_hz: float = 15.0
     image_noise: bool = True
+    nav_covariance: str = "service"
     overrides: tuple[tuple[str, Any], ...] = ()
 
     @property
@@ -321,6 +326,8 @@ def fly(spec: RunSpec) -> RunResult:
             nav_f = feed((mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION))
             if nav_f is None:
                 continue
+            if spec.nav_covariance == "injected":
+                nav_f = dataclasses.replace(nav_f, covariance=ap.nav.spec.covariance, covariance_source="injected")
             p_c, R_nc = mount.camera_pose(truth["p"], truth["R"])
             image = renderer.render(p_c, R_nc)
             step = mapper.step(nav_f, image)

@@ -244,18 +244,20 @@ MAPPER_FUNCTIONS = {
 
 
 class loop_reference:
-    """Context manager: run ``mapper`` (a :class:`companion.mapper.Mapper` with the inverse-depth
-    parameterisation) on the loop equations: its model's measurement model and Jacobian, and the
-    matching and update functions the mapper module calls, are swapped for the loops above and
-    restored on exit. Detection, initialisation and bookkeeping stay the mapper's own.
+    """Context manager: run the mapper on the loop equations. The matching and update functions the
+    mapper module calls are swapped for the loops above; ``mapper`` (a
+    :class:`companion.mapper.Mapper` with the inverse-depth parameterisation), if given, also gets
+    :func:`loop_model` (loop measurement model and Jacobian). Everything is restored on exit.
+    Detection, initialisation and bookkeeping stay the mapper's own. Mappers built inside the block
+    need ``mapper.model = loop_model()`` (or pass them here).
 
     Raises RuntimeError if the mapper module no longer calls one of those functions by name (the
     comparison would silently be batched against batched)."""
 
-    def __init__(self, mapper):
+    def __init__(self, mapper=None):
         import companion.mapper.mapper as mapper_module
 
-        if mapper.cfg.parameterisation != "inverse_depth":
+        if mapper is not None and mapper.cfg.parameterisation != "inverse_depth":
             raise ValueError("the loop reference implements the inverse-depth parameterisation only")
         missing = [name for name in MAPPER_FUNCTIONS if not hasattr(mapper_module, name)]
         if missing:
@@ -263,17 +265,20 @@ class loop_reference:
         self._module = mapper_module
         self._mapper = mapper
         self._saved: dict = {}
+        self._saved_model = None
 
     def __enter__(self):
         self._saved = {name: getattr(self._module, name) for name in MAPPER_FUNCTIONS}
-        self._saved_model = self._mapper.model
         for name, fn in MAPPER_FUNCTIONS.items():
             setattr(self._module, name, fn)
-        self._mapper.model = loop_model()
+        if self._mapper is not None:
+            self._saved_model = self._mapper.model
+            self._mapper.model = loop_model()
         return self._mapper
 
     def __exit__(self, *exc):
         for name, fn in self._saved.items():
             setattr(self._module, name, fn)
-        self._mapper.model = self._saved_model
+        if self._mapper is not None:
+            self._mapper.model = self._saved_model
         return False

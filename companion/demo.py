@@ -41,7 +41,7 @@ from companion import plots, report
 from companion.config import ConfigError
 
 PARAMETERISATIONS = ("inverse_depth", "cartesian")
-DEFAULT_SPEEDUP = 4.0
+DEFAULT_SPEEDUP = 3.0          # both runs of 3 laps in about 3.5 min on the 2-core machine, frames kept up (docs/demo.md)
 CAMERA_RATE_HZ = 15.0          # simulated seconds; the paper's camera ran at 16 Hz
 TRUTH_RATE_HZ = 25.0           # SIM_STATE (and ATTITUDE for its time stamp) to the pilot
 DETECTION_FRACTION = 0.5       # the obstacle counts as mapped once half its textured height is
@@ -49,6 +49,8 @@ LAP_RADIUS_M = 10.0            # a waypoint is visited when the truth passes thi
 STARTUP_WALL_S = 60.0          # processes up, link connected, camera running
 STOP_WALL_S = 10.0             # SIGTERM to exit
 CLEARANCE_ISSUE, CLEARANCE_GOAL = 0.8, 0.9
+MAP_MARGIN_M = 40.0            # the map figure shows the circuit and this much around it
+MAP_RANGE_M = (-5.0, 2.0)      # colour range: from -5 m to twice the obstacle's roof height
 
 
 class DemoError(RuntimeError):
@@ -252,7 +254,7 @@ class RunRecord:
     truth: TruthLog
     lap_ends: list[int] = field(default_factory=list)          # truth index of each lap's end
     lap_maps: list[report.MapRaster] = field(default_factory=list)
-    lap_daemon_laps: list[int] = field(default_factory=list)   # the service's own lap count then
+    service_laps: list[float] = field(default_factory=list)    # sim times the service's lap count rose
     detection: list[tuple[float, float]] = field(default_factory=list)  # (sim t, mapped obstacle height)
     final_map: report.MapRaster = field(default_factory=report.MapRaster.empty)
     status: dict[str, Any] | None = None
@@ -263,6 +265,7 @@ class RunRecord:
     daemon_exit: dict[str, Any] = field(default_factory=dict)
     sim_exit: dict[str, Any] = field(default_factory=dict)
     ground: dict[str, Any] = field(default_factory=dict)
+    options: dict[str, Any] | None = None                      # the demo's options (a record read back)
 
 
 def free_tcp_port() -> int:
@@ -332,9 +335,9 @@ def run_closed_loop(parameterisation: str, opts, world, obstacle, run_dir: Path,
     map_dir = run_dir / "map"
     if map_dir.exists():
         shutil.rmtree(map_dir)  # a fresh map for every run: the demo owns this folder
-    record = RunRecord(parameterisation, TruthLog())
     wall0 = time.monotonic()
     pilot = Pilot(home_from_scenario(opts.scenario))
+    record = RunRecord(parameterisation, pilot.truth)
     sim = daemon = station = None
     daemon_log = None
     try:
@@ -360,7 +363,7 @@ def run_closed_loop(parameterisation: str, opts, world, obstacle, run_dir: Path,
             pilot.drain()
             pilot.heartbeat()
             st = station.map.status or {}
-            if (st.get("link") or {}).get("connected") and (st.get("camera") or {}).get("state") == "ok":
+            if _link_state(st) == "connected" and (st.get("camera") or {}).get("state") == "ok":
                 break
             if daemon.poll() is not None:
                 raise DemoError(f"the service exited with status {daemon.returncode} at start-up (see {run_dir / 'daemon.log'})")
@@ -374,9 +377,15 @@ def run_closed_loop(parameterisation: str, opts, world, obstacle, run_dir: Path,
         record.problem = str(exc)
     finally:
         record.wall_s = time.monotonic() - wall0
+        if station is not None:
+            # The map the metrics use: at the last lap's end, or as far as an unfinished run got.
+            record.final_map = record.lap_maps[-1] if record.lap_maps else report.raster_from_tiles(dict(station.map.tiles))
+            record.status = station.map.status
+        stop_requested = time.time()
         record.daemon_exit = _stop(daemon, STOP_WALL_S)
         snapshot = map_dir / "terrain.snapshot"
-        record.daemon_exit["snapshot_saved"] = snapshot.exists() and snapshot.stat().st_mtime >= time.time() - 30
+        # Saved at shutdown: written after SIGTERM (1 s of slack for file-system time stamps).
+        record.daemon_exit["snapshot_saved"] = snapshot.exists() and snapshot.stat().st_mtime >= stop_requested - 1.0
         if station is not None:
             station.poll()
             record.ground = {"counts": dict(station.map.counts), "dropped": station.dropped, "syncs": station.syncs}
@@ -396,7 +405,6 @@ def fly(record: RunRecord, opts, world, obstacle, pilot: Pilot, station, daemon,
         wall0: float) -> tuple[bool, str]:
     """The main loop of a run: record truth, follow the map, cut laps; (complete, problem)."""
     counter = report.LapCounter(world.waypoints_ne_m, LAP_RADIUS_M)
-    threshold = DETECTION_FRACTION * obstacle.textured_height_m
     # A generous bound: the laps at the configured speed, times three, plus a minute.
     circuit_m = float(report.path_length(np.vstack([world.waypoints_ne_m, world.waypoints_ne_m[:1]]))[-1])
     budget_wall_s = 3.0 * (opts.laps * circuit_m / world.circuit.speed_mps + 60.0) / opts.speedup + 60.0
@@ -415,10 +423,11 @@ def fly(record: RunRecord, opts, world, obstacle, pilot: Pilot, station, daemon,
             for end in counter.update(ne):
                 record.lap_ends.append(end)
                 record.lap_maps.append(report.raster_from_tiles(dict(station.map.tiles)))
-                st = station.map.status or {}
-                record.lap_daemon_laps.append(int((st.get("control") or {}).get("lap", -1)))
             seen = n
         gm = station.map
+        service_lap = int(((gm.status or {}).get("control") or {}).get("lap") or 0)
+        while len(record.service_laps) < service_lap:
+            record.service_laps.append(pilot.sim_time_s)  # the status is 1 Hz: within a second of the truth
         if gm.counts["tiles_rx"] != tiles_rx:
             tiles_rx = gm.counts["tiles_rx"]
             near = [t for t in gm.tiles.values() if _tile_overlaps(t, footprint_lo, footprint_hi)]
@@ -437,7 +446,7 @@ def fly(record: RunRecord, opts, world, obstacle, pilot: Pilot, station, daemon,
         progress.update(progress_line(record.parameterisation, counter.laps, opts.laps, pilot.sim_time_s, alt,
                                       len(gm.tiles), int((st.get("mapper") or {}).get("frames_mapped", 0)),
                                       int(cam.get("queue_dropped", 0)), now_engaged, time.monotonic() - wall0,
-                                      counter.next_wp / len(world.waypoints_ne_m) if counter.next_wp else 0.0))
+                                      ((counter.next_wp - 1) % len(world.waypoints_ne_m)) / len(world.waypoints_ne_m)))
         if counter.laps >= opts.laps:
             break
         if daemon.poll() is not None:
@@ -448,14 +457,19 @@ def fly(record: RunRecord, opts, world, obstacle, pilot: Pilot, station, daemon,
         time.sleep(0.02)
     if engaged and last_engaged_t is not None:
         record.engaged_time_s += pilot.sim_time_s - last_engaged_t
-    record.final_map = record.lap_maps[-1]
-    record.status = station.map.status
     progress.done(progress_line(record.parameterisation, counter.laps, opts.laps, pilot.sim_time_s,
                                 pilot.truth.alt_m[-1], len(station.map.tiles),
                                 int(((record.status or {}).get("mapper") or {}).get("frames_mapped", 0)),
                                 int(((record.status or {}).get("camera") or {}).get("queue_dropped", 0)),
                                 engaged, time.monotonic() - wall0, 0.0))
     return True, ""
+
+
+def _link_state(status: dict) -> str | None:
+    """The autopilot link state in a ``companion.status/1`` document (``link.link.state``)."""
+    link = status.get("link") or {}
+    inner = link.get("link") if isinstance(link.get("link"), dict) else link
+    return inner.get("state")
 
 
 def _tile_overlaps(tile, lo: np.ndarray, hi: np.ndarray) -> bool:
@@ -477,12 +491,24 @@ def _num(x: Any, digits: int = 3):
     return round(x, digits) if math.isfinite(x) else None
 
 
+def warning_needed_s(world, obstacle) -> float:
+    """The law's time (s) to climb from the nominal altitude to the textured height plus clearance
+    (the demo flies the law's default acceleration and climb-rate limits)."""
+    from companion.avoidance import stopping_time
+    from companion.config import AvoidanceConfig
+
+    a = AvoidanceConfig()
+    gain = obstacle.textured_height_m + float(world.clearance_m) - float(world.circuit.altitude_agl_m)
+    return stopping_time(gain, a.accel_mps2, a.max_climb_mps)
+
+
 def run_metrics(rec: RunRecord, world, obstacle, clearance_m: float) -> dict[str, Any]:
     """The figures of one run (the ``runs.<parameterisation>`` entry of metrics.json)."""
     t, ne, alt = rec.truth.arrays()
     det_t = np.array([d[0] for d in rec.detection], float)
     det_h = np.array([d[1] for d in rec.detection], float)
     detected_t = report.first_detection_time(det_t, det_h, DETECTION_FRACTION * obstacle.textured_height_m)
+    needed_s = warning_needed_s(world, obstacle)
     laps = []
     starts = [0] + rec.lap_ends[:-1]
     for k, (s, e) in enumerate(zip(starts, rec.lap_ends)):
@@ -503,10 +529,12 @@ def run_metrics(rec: RunRecord, world, obstacle, clearance_m: float) -> dict[str
             "mapped_before_lap": bool(np.isfinite(detected_t) and detected_t <= t[s]),
             "mapped_before_crossing": bool(np.isfinite(detected_t) and np.isfinite(crossing.entered_t_s)
                                            and detected_t <= crossing.entered_t_s),
+            "warning_s": _num(crossing.entered_t_s - detected_t, 2),
+            "mapped_in_time": report.mapped_in_time(detected_t, crossing.entered_t_s, needed_s),
             "max_alt_m": _num(np.max(alt[sl])),
             "max_height_above_terrain_m": _num(np.max(agl)),
             "map_rmse_m": _num(err.rmse_m),
-            "service_lap_count": rec.lap_daemon_laps[k] if k < len(rec.lap_daemon_laps) else None,
+            "service_lap_end_t_s": _num(rec.service_laps[k], 2) if k < len(rec.service_laps) else None,
         })
     final_err = report.map_error(rec.final_map, world.terrain_height)
     textured_err = report.map_error(rec.final_map, lambda n, e: world.terrain_height(n, e, textured_only=True))
@@ -548,8 +576,11 @@ def run_metrics(rec: RunRecord, world, obstacle, clearance_m: float) -> dict[str
 def write_figures(records: dict[str, RunRecord], world, obstacle, out: Path) -> list[Path]:
     """map_<p>.png, profile_<p>_lap<k>.png for each run, and comparison.png."""
     written = []
+    from companion.config import AvoidanceConfig
+
     outlines = [o.footprint_ne_m for o in world.obstacles]
     clearance = float(world.clearance_m)
+    miss = AvoidanceConfig().miss_distance_m  # the law's corridor half-width (the demo keeps the default)
     for param, rec in records.items():
         t, ne, alt = rec.truth.arrays()
         starts = [0] + rec.lap_ends[:-1]
@@ -557,17 +588,28 @@ def write_figures(records: dict[str, RunRecord], world, obstacle, out: Path) -> 
                  for k, (s, e) in enumerate(zip(starts, rec.lap_ends))]
         m = rec.final_map
         if m.shape[0] and m.shape[1]:
+            wp = np.asarray(world.waypoints_ne_m, float)
+            lo, hi = wp.min(axis=0) - MAP_MARGIN_M, wp.max(axis=0) + MAP_MARGIN_M
+            view = m.crop(lo[0], hi[0], lo[1], hi[1])
+            outside = m.observed_cells() - view.observed_cells()
+            vmin, vmax = MAP_RANGE_M[0], MAP_RANGE_M[1] * obstacle.height_m
             written.append(plots.height_map(
-                out / f"map_{param}.png", m.height, m.north0_m, m.east0_m, m.cell_m,
-                f"{param.replace('_', ' ')}: terrain map after {len(rec.lap_ends)} laps (m, up)",
-                paths=paths, outlines=outlines))
+                out / f"map_{param}.png", view.height, view.north0_m, view.east0_m, view.cell_m,
+                f"{param.replace('_', ' ')}: terrain map (altitude, m) after {len(rec.lap_ends)} lap(s)",
+                paths=paths, outlines=outlines, vmin=vmin, vmax=vmax, scale_px=max(1, min(4, 840 // view.shape[0])),
+                notes=[f"outlines: true footprints ({obstacle.name}: roof {obstacle.height_m:g} m, "
+                       f"textured to {obstacle.textured_height_m:g} m)",
+                       f"colours clipped to {vmin:g}..{vmax:g} m; view: circuit + {MAP_MARGIN_M:g} m "
+                       f"({outside} mapped cells lie outside it)"]))
         for k, (s, e) in enumerate(zip(starts, rec.lap_ends)):
             prof = report.lap_profile(ne[s:e + 1], alt[s:e + 1], world.terrain_height, rec.lap_maps[k],
-                                      lambda n, e_: world.terrain_height(n, e_, textured_only=True))
+                                      lambda n, e_: world.terrain_height(n, e_, textured_only=True), corridor_m=miss)
             d = prof.distance_m
             series = [
                 plots.Series(d, prof.true_terrain_m, "true terrain", plots.PALETTE[5], 1, fill_to_bottom=True),
-                plots.Series(d, prof.mapped_terrain_m, "mapped terrain (end of lap)", plots.PALETTE[2], 2),
+                plots.Series(d, prof.mapped_corridor_max_m, f"mapped, highest within {miss:g} m across",
+                             plots.PALETTE[3], 1),
+                plots.Series(d, prof.mapped_terrain_m, "mapped terrain under the path", plots.PALETTE[2], 2),
                 plots.Series(d, prof.true_terrain_m + clearance, f"terrain + clearance {clearance:g} m",
                              plots.PALETTE[1], 1, dashed=True),
                 plots.Series(d, prof.alt_m, "altitude (truth)", plots.PALETTE[0], 2),
@@ -575,7 +617,7 @@ def write_figures(records: dict[str, RunRecord], world, obstacle, out: Path) -> 
             written.append(plots.line_chart(
                 out / f"profile_{param}_lap{k + 1}.png", series,
                 f"{param.replace('_', ' ')}, lap {k + 1}: side profile along the circuit",
-                "distance along the lap (m)", "altitude (m)"))
+                "distance along the lap (m); mapped = the ground station's map at the lap's end", "altitude (m)"))
     written.append(comparison_figure(records, world, obstacle, out / "comparison.png"))
     return written
 
@@ -603,12 +645,18 @@ def comparison_figure(records: dict[str, RunRecord], world, obstacle, path: Path
     try:
         a = plots.bar_chart(tmp / "h.png", groups, heights,
                             f"{obstacle.name}: mapped height at the end of each lap (m)", "height (m)",
-                            reference=(obstacle.textured_height_m, f"textured height {obstacle.textured_height_m:g} m "
-                                       f"(roof {obstacle.height_m:g} m; paper: ~75% of the roof)"), size=(760, 380))
+                            reference=[(obstacle.textured_height_m, f"textured height {obstacle.textured_height_m:g} m"),
+                                       (obstacle.height_m, f"roof {obstacle.height_m:g} m", plots.GREY),
+                                       (report.PAPER_MAPPED_FRACTION * obstacle.height_m,
+                                        f"paper: {100 * report.PAPER_MAPPED_FRACTION:.0f}% of the roof", plots.PALETTE[3])],
+                            size=(760, 400))
         b = plots.bar_chart(tmp / "c.png", groups, clearances,
                             f"{obstacle.name}: least clearance over it in each lap (m)", "clearance (m)",
-                            reference=(float(world.clearance_m), f"configured clearance {world.clearance_m:g} m"),
-                            size=(760, 380))
+                            reference=[(float(world.clearance_m), f"configured {world.clearance_m:g} m"),
+                                       (CLEARANCE_ISSUE * world.clearance_m, f"issue: {CLEARANCE_ISSUE:g} x configured", plots.GREY),
+                                       (CLEARANCE_GOAL * world.clearance_m, f"goal: {CLEARANCE_GOAL:g} x configured",
+                                        plots.PALETTE[3])],
+                            size=(760, 400))
         img = np.vstack([cv2.imread(str(a)), cv2.imread(str(b))])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -627,6 +675,48 @@ def write_trajectory(rec: RunRecord, path: Path) -> Path:
     return path
 
 
+OPTION_KEYS = ("scenario", "laps", "speedup", "seed", "no_avoid", "camera_rate")
+
+
+def save_record(rec: RunRecord, path: Path, opts=None) -> Path:
+    """Everything the report needs from one run, in one ``.npz`` (``--replot`` reads it back)."""
+    t, ne, alt = rec.truth.arrays()
+    arrays: dict[str, Any] = {"t_s": t, "ne_m": ne, "alt_m": alt, "lap_ends": np.asarray(rec.lap_ends, np.int64),
+                              "detection": np.asarray(rec.detection, float).reshape(-1, 2)}
+    for k, m in enumerate(rec.lap_maps):
+        arrays[f"lap{k}_height"], arrays[f"lap{k}_count"] = m.height.astype(np.float32), m.count.astype(np.uint32)
+        arrays[f"lap{k}_origin"] = np.array([m.north0_m, m.east0_m, m.cell_m])
+    meta = {k: getattr(rec, k) for k in ("parameterisation", "status", "engaged_time_s", "wall_s", "complete", "problem",
+                                         "daemon_exit", "sim_exit", "ground", "service_laps")}
+    if opts is not None:
+        meta["options"] = {k: getattr(opts, k) for k in OPTION_KEYS}
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)
+    return path
+
+
+def load_record(path: Path) -> RunRecord:
+    with np.load(path) as z:
+        meta = json.loads(bytes(z["meta"]).decode())
+        truth = TruthLog(list(z["t_s"]), list(z["ne_m"][:, 0]), list(z["ne_m"][:, 1]), list(z["alt_m"]))
+        maps = []
+        k = 0
+        while f"lap{k}_height" in z:
+            n0, e0, c = (float(v) for v in z[f"lap{k}_origin"])
+            maps.append(report.MapRaster(z[f"lap{k}_height"].astype(float), z[f"lap{k}_count"].astype(np.int64), n0, e0, c))
+            k += 1
+        rec = RunRecord(meta.pop("parameterisation"), truth, [int(i) for i in z["lap_ends"]], maps,
+                        detection=[(float(a), float(b)) for a, b in z["detection"]])
+    rec.options = meta.pop("options", None)
+    for key, value in meta.items():
+        setattr(rec, key, value)
+    if maps:
+        rec.final_map = maps[-1]
+    return rec
+
+
 def build_metrics(records: dict[str, RunRecord], world, obstacle, opts, wall_s: float) -> dict[str, Any]:
     clearance = float(world.clearance_m)
     runs = {p: run_metrics(r, world, obstacle, clearance) for p, r in records.items()}
@@ -638,7 +728,8 @@ def build_metrics(records: dict[str, RunRecord], world, obstacle, opts, wall_s: 
         olaps = None if other_laps is None else [{k: (math.nan if v is None else v) for k, v in lap.items()}
                                                  for lap in other_laps]
         verdicts[p] = {k: (_num(v) if isinstance(v, float) else v)
-                       for k, v in report.criteria(laps, clearance, obstacle.textured_height_m, olaps).items()}
+                       for k, v in report.criteria(laps, clearance, obstacle.textured_height_m, olaps,
+                                                                 float(obstacle.height_m)).items()}
     return {
         "schema": "companion.demo/1",
         "clearance_m": clearance,
@@ -647,6 +738,7 @@ def build_metrics(records: dict[str, RunRecord], world, obstacle, opts, wall_s: 
                      "footprint_ne_m": obstacle.footprint_ne_m.tolist()},
         "runs": runs,
         "criteria": verdicts,
+        "warning_needed_s": _num(warning_needed_s(world, obstacle), 2),
         "paper": {"mapped_fraction_of_height": report.PAPER_MAPPED_FRACTION,
                   "note": "Magree, Mooney, Johnson, section IV: the 40 ft structure (texture to ~30 ft) was mapped at about 30 ft"},
         "definitions": {
@@ -654,6 +746,8 @@ def build_metrics(records: dict[str, RunRecord], world, obstacle, opts, wall_s: 
             "mapped_obstacle_height_m": "95th percentile of the mapped heights of the footprint cells (grown by one cell) "
                                         "holding >= 2 points, in the ground station's map at the lap's end",
             "first_detection_t_s": f"first time the mapped obstacle height reached {DETECTION_FRACTION:g} x the textured height",
+            "mapped_in_time": "first detection at least warning_needed_s before the lap's crossing (the law's time to climb "
+                              "from the nominal altitude to textured height + clearance); the clearance criteria judge these laps",
             "map_rmse_m": "RMSE of every observed cell of the final map against the scenario's true heights at cell centres",
             "laps": f"cut where the true trajectory comes back within {LAP_RADIUS_M:g} m of the first waypoint after the others",
         },
@@ -668,8 +762,12 @@ def build_metrics(records: dict[str, RunRecord], world, obstacle, opts, wall_s: 
     }
 
 
+DROPPED_WARN = 0.05  # a larger share of camera frames dropped by the service is worth a word
+
+
 def summary_lines(metrics: dict[str, Any]) -> list[str]:
-    """A few lines for the terminal: per lap, mapped height and least clearance."""
+    """A few lines for the terminal: per lap, mapped height and least clearance; a warning when the
+    service could not keep up with the camera."""
     out = [f"obstacle textured to {metrics['obstacle_textured_height_m']:g} m (roof {metrics['obstacle']['height_m']:g} m); "
            f"clearance {metrics['clearance_m']:g} m; the paper mapped ~{100 * report.PAPER_MAPPED_FRACTION:.0f}% of the roof height"]
     for p, run in metrics["runs"].items():
@@ -678,6 +776,10 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
             for lap in run["laps"])
         out.append(f"{p:>13}: {laps or 'no complete lap'}; map RMSE {_fmt(run['map_rmse_m'])} m"
                    + (f"  [{run['problem']}]" if run["problem"] else ""))
+        frames, dropped = run.get("frames") or 0, run.get("frames_dropped") or 0
+        if frames and dropped > DROPPED_WARN * frames:
+            out.append(f"{'':>13}  warning: the service dropped {100 * dropped / frames:.0f}% of the camera frames "
+                       f"(busy machine or --speedup {metrics['speedup']:g} too high for it): try a lower --speedup")
     return out
 
 
@@ -701,6 +803,8 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="hold the nominal altitude only (the law is still evaluated and published, not obeyed)")
     p.add_argument("--parameterisation", choices=("inverse_depth", "cartesian", "both"), default="both",
                    help="mapper feature parameterisation; both = inverse depth, then the Cartesian baseline (default)")
+    p.add_argument("--replot", action="store_true",
+                   help="do not fly: rebuild metrics.json and the figures from the runs saved in --output")
     p.add_argument("--camera-rate", type=float, default=CAMERA_RATE_HZ, metavar="HZ",
                    help=f"synthetic camera rate in simulated Hz (default {CAMERA_RATE_HZ:g})")
 
@@ -738,17 +842,27 @@ def main(args: argparse.Namespace) -> int:
     wall0 = time.monotonic()
     records: dict[str, RunRecord] = {}
     interrupted = False
-    try:
+    if args.replot:
         for p in params:
-            records[p] = run_closed_loop(p, args, world, obstacle, out / "runs" / p, progress)
-            if records[p].problem:
-                progress.say(f"companion demo: {p}: {records[p].problem}")
-    except KeyboardInterrupt:
-        interrupted = True
-        progress.say("companion demo: interrupted; writing what was flown")
-    wall = time.monotonic() - wall0
-    for p, rec in records.items():
-        write_trajectory(rec, out / "runs" / p / "trajectory.csv")
+            path = out / "runs" / p / "record.npz"
+            if not path.exists():
+                print(f"companion demo: --replot: no saved run {path}", file=sys.stderr)
+                return 2
+            records[p] = load_record(path)
+            for k, v in (records[p].options or {}).items():
+                setattr(args, k, v)  # the figures describe the run as it was flown
+    else:
+        try:
+            for p in params:
+                records[p] = run_closed_loop(p, args, world, obstacle, out / "runs" / p, progress)
+                if records[p].problem:
+                    progress.say(f"companion demo: {p}: {records[p].problem}")
+                save_record(records[p], out / "runs" / p / "record.npz", args)
+                write_trajectory(records[p], out / "runs" / p / "trajectory.csv")
+        except KeyboardInterrupt:
+            interrupted = True
+            progress.say("companion demo: interrupted; writing what was flown")
+    wall = time.monotonic() - wall0 if not args.replot else sum(r.wall_s for r in records.values())
     metrics = build_metrics(records, world, obstacle, args, wall)
     figures = write_figures({p: r for p, r in records.items() if r.lap_ends}, world, obstacle, out)
     metrics["figures"] = [f.name for f in figures]

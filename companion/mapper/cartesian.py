@@ -27,8 +27,10 @@ __all__ = [
     "measurement_model",
     "measurement_jacobian",
     "initialise_features",
+    "navigation_frame_jacobian",
     "point_from_state",
     "relative_depth_sigma",
+    "depth_from_origin",
     "normalise_state",
 ]
 
@@ -101,10 +103,22 @@ def initialise_features(
     return X, 0.5 * (P + np.swapaxes(P, 1, 2)), R_ref
 
 
+def navigation_frame_jacobian(y: np.ndarray, R_ref: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``dX/dx`` (N, 3, 6) of a stored point when the navigation frame moves by ``x = [dp, dtheta]``
+    (rigidly about the body origin ``p`` (3,)): ``[I, -[X - p]x]`` (see the inverse-depth version)."""
+    y = np.asarray(y, dtype=float)
+    return np.concatenate([np.broadcast_to(np.eye(3), (len(y), 3, 3)), -skew(y - np.asarray(p, dtype=float))], axis=2)
+
+
 def point_from_state(y: np.ndarray, R_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The state is the point: ``X`` (N, 3), ``J = I`` (N, 3, 3)."""
     y = np.asarray(y, dtype=float)
     return y.copy(), np.broadcast_to(np.eye(3), (len(y), 3, 3)).copy()
+
+
+def depth_from_origin(y: np.ndarray, R_ref: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Distance (N,) from the camera centre at initialisation ``origin`` (N, 3) to the point."""
+    return np.linalg.norm(np.asarray(y, dtype=float) - origin, axis=1)
 
 
 def relative_depth_sigma(y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin: np.ndarray) -> np.ndarray:

@@ -191,6 +191,27 @@ def initialise_features(
     return y, 0.5 * (P + np.swapaxes(P, 1, 2)), R_ref
 
 
+def navigation_frame_jacobian(y: np.ndarray, R_ref: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """How a stored feature moves when the navigation frame moves: ``dy/dx`` (N, 6, 6).
+
+    The features live in the autopilot's estimated frame (docs/mapper.md, "Correlated navigation
+    error"). If the estimate moves by ``x = [dp, dtheta]`` (position, and ``R_nb -> Exp(dtheta) R_nb``)
+    while the world stays put, every point seen from it moves rigidly about the body origin ``p``
+    (3,): the anchor by ``da = dp - [a - p]x dtheta``, the direction by ``m -> Exp(dtheta) m``, so
+    ``d(psi, theta) = -A R_ref^T [m]x dtheta``, and ``rho`` (a distance) not at all. The same form as
+    the initialisation's ``J_x`` (eq. 17) with the lever arm ``a - p``.
+    """
+    y = np.asarray(y, dtype=float)
+    n = len(y)
+    m_w = world_direction(y, R_ref)
+    A_ref = angle_jacobian(y[:, PSI], y[:, THETA]) @ np.swapaxes(R_ref, 1, 2)
+    J = np.zeros((n, STATE_DIM, 6))
+    J[:, ANCHOR, 0:3] = np.eye(3)
+    J[:, ANCHOR, 3:6] = -skew(y[:, ANCHOR] - np.asarray(p, dtype=float))
+    J[:, PSI:THETA + 1, 3:6] = -A_ref @ skew(m_w)
+    return J
+
+
 def point_from_state(y: np.ndarray, R_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Feature position ``X = a + m_world / rho`` (N, 3) and ``J = dX/dy`` (N, 3, 6).
 
@@ -210,6 +231,13 @@ def point_from_state(y: np.ndarray, R_ref: np.ndarray) -> tuple[np.ndarray, np.n
     J[:, :, THETA] = np.einsum("nij,nj->ni", R_ref, dm_dtheta) * inv[:, None]
     J[:, :, RHO] = -m_w * (inv * inv)[:, None]
     return X, J
+
+
+def depth_from_origin(y: np.ndarray, R_ref: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Depth (N,) from the anchor, ``1 / rho`` (``inf`` where ``rho <= 0``); ``origin`` unused."""
+    rho = np.asarray(y, dtype=float)[:, RHO]
+    with np.errstate(divide="ignore"):
+        return np.where(rho > 0, 1.0 / np.maximum(rho, 1e-300), np.inf)
 
 
 def relative_depth_sigma(y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin: np.ndarray) -> np.ndarray:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from statistics import NormalDist
 from types import ModuleType
 
 import numpy as np
@@ -24,6 +25,7 @@ import numpy as np
 from companion.config import MapperConfig
 from companion.geometry import CameraMount, PinholeCamera
 from companion.mapper import cartesian, inverse_depth
+from companion.mapper.appearance import correlation, patch_descriptors
 from companion.mapper.database import FeatureDatabase
 from companion.mapper.depth_prior import DepthPrior, prior_ranges
 from companion.mapper.matching import (
@@ -70,6 +72,7 @@ class MapperStep:
     n_excluded: other unmatched measurements not initialised because a stored feature's prediction
     is within ``init_exclusion_chi2`` (Mahalanobis) or ``min_distance_px`` of them.
     n_prior_fallback: new features whose depth prior fell back to flat ground.
+    n_inconsistent: features dropped by the innovation consistency test (included in n_removed).
     init_index: the frame's initialisation confidence index.
     matched_ids / matched_measurements (K,): feature ids and the indices (into the input array) of
     the measurements that updated them; initialised_ids / initialised_measurements likewise;
@@ -89,6 +92,7 @@ class MapperStep:
     n_ambiguous: int = 0
     n_excluded: int = 0
     n_prior_fallback: int = 0
+    n_inconsistent: int = 0
     init_index: float = 0.0
     matched_ids: np.ndarray = field(default_factory=_empty_ids)
     matched_measurements: np.ndarray = field(default_factory=_empty_ids)
@@ -114,6 +118,40 @@ class FeatureSnapshot:
     confidence: np.ndarray
     updates: np.ndarray
     states: np.ndarray
+
+
+def chi2_quantile(p: float, dof: np.ndarray) -> np.ndarray:
+    """Chi-square quantile (Wilson-Hilferty; within 1 % for dof >= 2 at p <= 0.9999). dof: (K,)."""
+    k = np.asarray(dof, dtype=float)
+    z = NormalDist().inv_cdf(p)
+    return k * (1.0 - 2.0 / (9.0 * k) + z * np.sqrt(2.0 / (9.0 * k))) ** 3
+
+
+def _nearest_psd(M: np.ndarray) -> np.ndarray:
+    """Symmetric part of ``M`` with negative eigenvalues set to 0 (the velocity block is not
+    checked by :func:`check_nav`, which only needs the pose block)."""
+    w, V = np.linalg.eigh(0.5 * (M + M.T))
+    return (V * np.maximum(w, 0.0)) @ V.T
+
+
+def navigation_drift(covariance: np.ndarray, dt_s: float, attitude_correlation_s: float) -> np.ndarray | None:
+    """Covariance (6, 6) of the change of the navigation error over ``dt_s`` (docs/mapper.md,
+    "Correlated navigation error"), from the 9x9 ``NavState.covariance``:
+
+    * position: the estimate's position error is the integral of its velocity error (an EKF's
+      position is integrated from its velocity between fixes), so it changes by
+      ``P_vel dt^2`` in ``dt``;
+    * attitude: a first-order Gauss-Markov error with stationary covariance ``P_att`` and correlation
+      time ``tau`` changes by ``(1 - exp(-2 dt / tau)) P_att`` (the part of ``e(t + dt)`` that is new).
+
+    None when ``dt_s`` is not positive (first step, time going back).
+    """
+    if not (dt_s > 0) or not np.isfinite(dt_s):
+        return None
+    q = np.zeros((6, 6))
+    q[0:3, 0:3] = _nearest_psd(covariance[3:6, 3:6]) * dt_s * dt_s
+    q[3:6, 3:6] = -np.expm1(-2.0 * dt_s / attitude_correlation_s) * covariance[6:9, 6:9]
+    return 0.5 * (q + q.T)
 
 
 def check_nav(nav: NavState) -> str:
@@ -173,15 +211,21 @@ class Mapper:
         self.model = PARAMETERISATIONS[cfg.parameterisation]
         self.prior_sigma = cfg.sigma_rho if cfg.parameterisation == "inverse_depth" else cfg.sigma_depth_rel
         self.R_img = np.diag([cfg.pixel_sigma_px**2, cfg.pixel_sigma_px**2])
-        self.db = FeatureDatabase(cfg.max_features, self.model.STATE_DIM)
+        self.db = FeatureDatabase(cfg.max_features, self.model.STATE_DIM, cfg.consistency_window, cfg.appearance_patch_px**2)
+        # Mean-NIS limit for a window of n updates: the chi-square (2n dof) quantile over n.
+        n = np.arange(1, cfg.consistency_window + 1)
+        self._nis_limit = chi2_quantile(1.0 - cfg.consistency_alpha, 2 * n) / n
         self.frame = 0
         self._detector = None
         self._detector_shape: tuple[int, ...] | None = None
+        self._last_nav_t = np.inf  # time of the last accepted step (no drift before the first)
 
     # ------------------------------------------------------------------------------------------
     def reset(self) -> None:
         """Forget every feature (ids keep increasing)."""
         self.db.clear()
+        self._last_nav_t = np.inf
+
 
     def step(self, nav: NavState, image: np.ndarray) -> MapperStep:
         """Detect corners in ``image`` ((H, W) grey or (H, W, 3) BGR uint8), undistort them, then
@@ -196,7 +240,13 @@ class Mapper:
             uv_raw, _scores = self.detector(image)
         else:
             uv_raw, _scores = self._harris(image)
-        return self.step_measurements(nav, self.camera.undistort(np.asarray(uv_raw, dtype=float).reshape(-1, 2)))
+        uv_raw = np.asarray(uv_raw, dtype=float).reshape(-1, 2)
+        descriptors = None
+        if self.cfg.appearance_patch_px > 0:
+            from companion.mapper.features import as_gray
+
+            descriptors = patch_descriptors(as_gray(image), uv_raw, self.cfg.appearance_patch_px)
+        return self.step_measurements(nav, self.camera.undistort(uv_raw), descriptors)
 
     def _harris(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The default detector, built once per image size (its buffers are reused frame to frame)."""
@@ -208,13 +258,21 @@ class Mapper:
             self._detector_shape = gray.shape
         return self._detector(gray)
 
-    def step_measurements(self, nav: NavState, uv_ideal: np.ndarray) -> MapperStep:
-        """One mapper step from ideal (undistorted) pixels ``uv_ideal`` (N, 2) in score order."""
+    def step_measurements(self, nav: NavState, uv_ideal: np.ndarray, descriptors: np.ndarray | None = None) -> MapperStep:
+        """One mapper step from ideal (undistorted) pixels ``uv_ideal`` (N, 2) in score order.
+
+        descriptors: optional (N, K) normalised patches (:func:`patch_descriptors`, K =
+        ``appearance_patch_px^2``); with them a pair must also pass the appearance check.
+        """
         uv = np.asarray(uv_ideal, dtype=float)
         if uv.size == 0:
             uv = uv.reshape(0, 2)
         if uv.ndim != 2 or uv.shape[1] != 2:
             raise ValueError(f"measurements must have shape (N, 2), got {uv.shape}")
+        if descriptors is not None:
+            descriptors = np.asarray(descriptors, dtype=np.float32)
+            if descriptors.shape != (len(uv), self.db.template.shape[1]):
+                raise ValueError(f"descriptors must have shape ({len(uv)}, {self.db.template.shape[1]}), got {descriptors.shape}")
         reason = check_nav(nav)
         if reason:
             return self._refused(nav, len(uv), reason)
@@ -228,6 +286,7 @@ class Mapper:
         valid = np.isfinite(uv).all(axis=1) & self.camera.in_image(uv)
         meas_index = np.flatnonzero(valid)  # positions in the caller's array
         z = uv[valid]
+        desc = descriptors[valid] if descriptors is not None else None
         n_dropped = int(len(uv) - len(z))
         emitted: list[TerrainPoints] = []
 
@@ -238,6 +297,20 @@ class Mapper:
         db.remove(slots[corrupt])
         n_removed = int(corrupt.sum())
         slots = slots[~corrupt]
+
+        # Correlated navigation error (docs/mapper.md): the features live in the estimate's frame,
+        # which drifts between frames (process noise on every feature); the paper's P_x in eqs. 10
+        # and 17 is then zero. nav_attitude_correlation_s = 0: the paper's independent P_x every frame.
+        P_meas = P_x
+        if cfg.nav_attitude_correlation_s > 0:
+            P_meas = np.zeros_like(P_x)
+            cov = np.asarray(nav.covariance, dtype=float)
+            q = navigation_drift(cov, nav.t_s - self._last_nav_t, cfg.nav_attitude_correlation_s)
+            if len(slots) and q is not None:
+                J = model.navigation_frame_jacobian(db.y[slots], db.R_ref[slots], pose.p)
+                Q = J @ q @ np.swapaxes(J, 1, 2)
+                db.P[slots] += 0.5 * (Q + np.swapaxes(Q, 1, 2))
+        self._last_nav_t = float(nav.t_s)
 
         # Predict (eqs. 3-4); features behind the camera or outside the image leave the database.
         uv_pred, h_c = model.measurement_model(db.y[slots], db.R_ref[slots], pose, self.camera)
@@ -251,19 +324,39 @@ class Mapper:
 
         # Match (eqs. 10-12).
         C_x, C_y = model.measurement_jacobian(db.y[slots], db.R_ref[slots], pose, self.camera, h_c)
-        S = innovation_covariance(C_x, C_y, P_x, db.P[slots], self.R_img)
+        S = innovation_covariance(C_x, C_y, P_meas, db.P[slots], self.R_img)
         Z = mahalanobis_distances(z, uv_pred, S)
-        point_idx, match_idx, ambiguous = gate_and_match(Z, cfg.gate_chi2)
+        Z_match = Z
+        if desc is not None:
+            # Appearance: a pair whose patches do not correlate is not a candidate at all.
+            looks = db.has_template[slots]
+            unlike = looks[:, None] & (correlation(db.template[slots], desc) < cfg.appearance_min_ncc)
+            Z_match = np.where(unlike, np.inf, Z)
+        point_idx, match_idx, ambiguous = gate_and_match(Z_match, cfg.gate_chi2)
 
         # Update (eqs. 6-9), all matched features at once.
         upd = slots[point_idx]
         y_new, P_new, ok = ekf_update(
-            db.y[upd], db.P[upd], z[match_idx] - uv_pred[point_idx], C_x[point_idx], C_y[point_idx], P_x, self.R_img
+            db.y[upd], db.P[upd], z[match_idx] - uv_pred[point_idx], C_x[point_idx], C_y[point_idx], P_meas, self.R_img
         )
         db.y[upd] = model.normalise_state(y_new)
         db.P[upd] = P_new
         updated = upd[ok]
-        db.updates[updated] += 1
+        db.record_update(updated, Z[point_idx[ok], match_idx[ok]])
+        if desc is not None:
+            db.template[updated] = desc[match_idx[ok]]
+            db.has_template[updated] = True
+
+        # Consistency: a feature whose recent innovations are too large for its S is not tracking
+        # one point of the world (a mismatch on a repetitive texture, a corner sliding along an
+        # edge, a T-junction of an occluding edge): it leaves without being emitted (again).
+        n_window = np.minimum(db.updates[updated], cfg.consistency_window)
+        inconsistent = db.mean_nis(updated) > self._nis_limit[np.maximum(n_window, 1) - 1]
+        dropped = updated[inconsistent]
+        removed_ids.append(db.ids[dropped].copy())
+        db.remove(dropped)
+        n_removed += len(dropped)
+        updated = updated[~inconsistent]
 
         # Confidence index: +1 matched, -1 visible but not matched (or refused).
         unmatched = np.setdiff1d(slots, updated, assume_unique=True)
@@ -271,8 +364,12 @@ class Mapper:
 
         # Convergence: emit a feature the first time its relative depth sigma falls below the limit.
         rel = model.relative_depth_sigma(db.y[updated], db.P[updated], db.R_ref[updated], db.origin[updated])
-        newly = (~db.converged[updated]) & (db.updates[updated] >= cfg.converge_min_updates) & (
-            rel < cfg.converged_rel_depth_sigma
+        depth = model.depth_from_origin(db.y[updated], db.R_ref[updated], db.origin[updated])
+        newly = (
+            (~db.converged[updated])
+            & (db.updates[updated] >= cfg.converge_min_updates)
+            & (rel < cfg.converged_rel_depth_sigma)
+            & (rel * depth < cfg.converged_max_depth_sigma_m)
         )
         db.converged[updated[newly]] = True
         emitted.append(self._emitted_points(nav.t_s, updated[newly]))
@@ -306,9 +403,12 @@ class Mapper:
                 self.depth_prior, pose.p_c, rays, self.default_ground_alt_m, cfg.prior_min_range_m, cfg.prior_max_range_m
             )
             y0, P0, R_ref0 = model.initialise_features(
-                z[chosen], ranges, pose, self.camera, self.R_img, self.prior_sigma, P_x
+                z[chosen], ranges, pose, self.camera, self.R_img, self.prior_sigma, P_meas
             )
             new_ids = db.insert(targets, y0, P0, R_ref0, pose.p_c, int(round(init_index)), self.frame)
+            if desc is not None:
+                db.template[targets] = desc[chosen]
+                db.has_template[targets] = True
 
         n_update_rejected = int((~ok).sum())
         return MapperStep(
@@ -324,6 +424,7 @@ class Mapper:
             n_ambiguous=int(ambiguous.sum()),
             n_excluded=int((blocked & ~used & ~ambiguous).sum()),
             n_prior_fallback=n_fallback,
+            n_inconsistent=len(dropped),
             init_index=init_index,
             matched_ids=db.ids[updated].copy(),
             matched_measurements=meas_index[match_idx[ok]].astype(np.int64),

@@ -1,0 +1,319 @@
+"""The daemon while mapping: frame-to-setpoint latency and control-loop jitter (issue 7).
+
+Three processes on this machine, as a user would run them:
+
+1. ``companion sim`` (ArduPilot flavour, default scenario, speed-up 1) listening on an ephemeral
+   TCP port for the daemon and sending to a UDP port for the pilot;
+2. the *pilot* (a thread here, plain pymavlink): GUIDED, arm, take off to the circuit altitude,
+   then a GCS heartbeat every second (ArduPilot's GCS failsafe would land the vehicle otherwise);
+3. ``companion run --config <generated yaml>``: ``config/sitl.yaml`` with ``camera.rate_hz``
+   30, ``sim.speedup`` 1, Zenoh on a free loopback port, persistence in a temporary directory.
+   Once the vehicle is above ``control.min_alt_m`` the daemon commands the circuit in GUIDED.
+
+The figures are the daemon's own (``companion.status/1`` on Zenoh, ``control.jitter_ms`` and
+``control.frame_to_setpoint_ms``), read by a Zenoh client that knows only the documented key and
+JSON fields. The status windows hold the last 2000 samples since the daemon started: the run is
+reported as a whole (start-up included; see docs/performance.md for what that means).
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+GUIDED = 4
+# Runs a module's ``main(argv)`` on given cores and, optionally, with another GIL switch interval:
+# ``python -c LAUNCHER CORES INTERVAL_S|- MODULE <arguments>`` (CORES "-" = inherit).
+LAUNCHER = (
+    "import importlib, os, sys\n"
+    "cores, interval, module = sys.argv[1], sys.argv[2], sys.argv[3]\n"
+    "if cores != '-':\n"
+    "    os.sched_setaffinity(0, {int(c) for c in cores.split(',')})\n"
+    "if interval != '-':\n"
+    "    sys.setswitchinterval(float(interval))\n"
+    "sys.exit(importlib.import_module(module).main(sys.argv[4:]))\n"
+)
+SETTLE_S = 5.0  # steady state: samples from this long after take-off
+
+
+def launcher(module: str, cores: str = "-", switch_interval_s: float | None = None) -> list[str]:
+    return [sys.executable, "-c", LAUNCHER, cores, "-" if switch_interval_s is None else repr(switch_interval_s), module]
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def daemon_config(sim_port: int, zenoh_port: int, directory: str, rate_hz: float = 30.0) -> dict:
+    """config/sitl.yaml with the benchmark's changes (a plain dict, written as YAML)."""
+    with open(REPO / "config" / "sitl.yaml") as f:
+        cfg = yaml.safe_load(f)
+    cfg.setdefault("link", {})["connection"] = f"tcp:127.0.0.1:{sim_port}"
+    cfg.setdefault("camera", {})["rate_hz"] = float(rate_hz)
+    cfg.setdefault("zenoh", {}).update(listen=[f"tcp/127.0.0.1:{zenoh_port}"], status_rate_hz=2.0,
+                                      multicast_scouting=False, mode="peer")
+    cfg.setdefault("persistence", {})["directory"] = directory
+    cfg.setdefault("sim", {})["speedup"] = 1.0
+    return cfg
+
+
+class Pilot(threading.Thread):
+    """GUIDED, arm, take off; then heartbeats until stopped. ``error`` says what failed."""
+
+    def __init__(self, client, takeoff_alt_m: float):
+        super().__init__(name="pilot", daemon=True)
+        self.client = client
+        self.alt = takeoff_alt_m
+        self.stop = threading.Event()
+        self.airborne = threading.Event()
+        self.error = ""
+        self.altitude_m = float("nan")
+
+    def run(self) -> None:
+        from pymavlink.dialects.v20 import ardupilotmega as mav
+
+        c = self.client
+        try:
+            c.wait_heartbeat(10.0)
+            c.heartbeat()
+            c.set_interval(mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 5)
+            if c.wait_statustext(lambda t: "origin set" in t.lower(), 20.0) is None:
+                self.error = "no 'origin set' from the simulator"
+                return
+            for cmd, args in ((mav.MAV_CMD_DO_SET_MODE, (mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, GUIDED)),
+                              (mav.MAV_CMD_COMPONENT_ARM_DISARM, (1,)),
+                              (mav.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, self.alt))):
+                ack = c.command(cmd, *args)
+                if ack is None or ack.result != mav.MAV_RESULT_ACCEPTED:
+                    self.error = f"command {cmd} not accepted ({ack})"
+                    return
+            last_hb = 0.0
+            while not self.stop.is_set():
+                now = time.monotonic()
+                if now - last_hb > 0.5:
+                    c.heartbeat()
+                    last_hb = now
+                m = c.latest("LOCAL_POSITION_NED")
+                if m is not None:
+                    self.altitude_m = -m.z
+                    if -m.z > 0.8 * self.alt:
+                        self.airborne.set()
+                time.sleep(0.05)
+        except Exception as exc:  # noqa: BLE001 - reported in the results, never hangs the run
+            self.error = f"pilot: {exc!r}"
+
+
+class StatusListener:
+    """Zenoh client subscribed to ``companion/<vehicle>/status``; keeps the newest decoded JSON."""
+
+    def __init__(self, endpoint: str, vehicle: str = "vehicle1"):
+        import zenoh
+
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", json.dumps("client"))
+        cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        self.session = zenoh.open(cfg)
+        self.latest: dict | None = None
+        self.received = 0
+        self._lock = threading.Lock()
+        self._sub = self.session.declare_subscriber(f"companion/{vehicle}/status", self._on_sample)
+
+    def _on_sample(self, sample) -> None:
+        try:
+            body = json.loads(bytes(sample.payload.to_bytes()).decode("utf-8"))
+        except (ValueError, UnicodeDecodeError):
+            return
+        with self._lock:
+            self.latest = body
+            self.received += 1
+
+    def get(self) -> dict | None:
+        with self._lock:
+            return self.latest
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+        finally:
+            self.session.close()
+
+
+def _wait(pred, timeout_s: float, poll_s: float = 0.1) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(poll_s)
+    return False
+
+
+def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=print, daemon_cores: str = "1",
+                         sim_cores: str = "0", switch_interval_s: float | None = None) -> dict:
+    """Fly the circuit with the daemon mapping at ``rate_hz`` for ``duration_s`` after take-off;
+    returns the daemon's control figures (and what went wrong, if anything).
+
+    ``daemon_cores`` / ``sim_cores``: CPU sets ("1", "0,1", "-" = inherit) of the two processes;
+    by default the daemon has one core and the simulator (which stands in for the autopilot and
+    the camera's world) the other. ``switch_interval_s``: the daemon's GIL switch interval
+    (``sys.setswitchinterval``; None = Python's default, 5 ms)."""
+    from drivers.sim.harness import MavClient, SimVehicleProcess
+
+    result: dict = {"duration_s": duration_s, "camera_rate_hz": rate_hz, "error": "", "daemon_cores": daemon_cores,
+                    "sim_cores": sim_cores, "switch_interval_s": switch_interval_s}
+    tmp = tempfile.TemporaryDirectory(prefix="companion-bench-")
+    pilot_client = MavClient.udp_listener()
+    sim = SimVehicleProcess(["--flavour", "ardupilot", "--scenario", "default", "--tcp-listen", "127.0.0.1:0",
+                             "--udp-out", f"127.0.0.1:{pilot_client.port}", "--speedup", "1",
+                             "--origin-delay", "0.5", "--log-level", "WARNING"],
+                            command=launcher("companion.cli", sim_cores) + ["sim"], stderr_path=os.path.join(tmp.name, "sim.log"))
+    daemon = listener = pilot = None
+    daemon_log = os.path.join(tmp.name, "daemon.log")
+    samples_path = os.path.join(tmp.name, "samples.json")
+    t_air = None
+    try:
+        sim.start()
+        zenoh_port = free_port()
+        cfg = daemon_config(sim.endpoints["tcp"], zenoh_port, os.path.join(tmp.name, "map"), rate_hz)
+        cfg_path = os.path.join(tmp.name, "bench.yaml")
+        with open(cfg_path, "w") as f:
+            yaml.safe_dump(cfg, f)
+        takeoff = float(cfg.get("avoidance", {}).get("nominal_alt_m", 15.0))
+        pilot = Pilot(pilot_client, takeoff)
+        pilot.start()
+        with open(daemon_log, "w") as err:
+            daemon = subprocess.Popen(launcher("benchmarks.daemon_probe", daemon_cores, switch_interval_s)
+                                      + ["--config", cfg_path, "--samples", samples_path, "--log-level", "WARNING"],
+                                      stdout=subprocess.DEVNULL, stderr=err,
+                                      env=dict(os.environ, PYTHONUNBUFFERED="1"), cwd=str(REPO))
+        listener = _wait_listener(f"tcp/127.0.0.1:{zenoh_port}", 20.0)
+        if listener is None:
+            raise RuntimeError("no Zenoh session with the daemon")
+        if not pilot.airborne.wait(45.0):
+            raise RuntimeError(pilot.error or f"vehicle not airborne (altitude {pilot.altitude_m:.1f} m)")
+        t_air = time.monotonic()
+        log(f"  daemon: airborne; mapping for {duration_s:.0f} s ...")
+        if not _wait(lambda: (listener.get() or {}).get("mapper", {}).get("frames_mapped", 0) > 0, 15.0):
+            raise RuntimeError("the daemon mapped no frame")
+        time.sleep(max(0.0, duration_s - (time.monotonic() - t_air)))
+        seen = listener.received
+        _wait(lambda: listener.received > seen, 3.0)  # a status published after the run
+        status = listener.get()
+        if status is None:
+            raise RuntimeError("no status from the daemon")
+        control, mapper = status.get("control", {}), status.get("mapper", {})
+        result.update(
+            jitter_ms=control.get("jitter_ms"),
+            frame_to_setpoint_ms=control.get("frame_to_setpoint_ms"),
+            control_rate_hz=control.get("rate_hz"),
+            control_ticks=control.get("ticks"),
+            mapper_step_ms=mapper.get("step_ms"),
+            frames_mapped=mapper.get("frames_mapped"),
+            frames_in=status.get("camera", {}).get("frames"),
+            queue_dropped=status.get("camera", {}).get("queue_dropped"),
+            camera_stats=status.get("camera", {}).get("stats"),
+            points_converged=mapper.get("points_converged"),
+            command=status.get("command"),
+            uptime_s=status.get("uptime_s"),
+            map=status.get("map"),
+        )
+    except Exception as exc:  # noqa: BLE001 - the other benchmarks still report
+        result["error"] = str(exc)
+    finally:
+        if pilot is not None:
+            pilot.stop.set()
+        if daemon is not None:
+            daemon.terminate()
+            try:
+                daemon.wait(10)
+            except subprocess.TimeoutExpired:
+                daemon.kill()
+                daemon.wait(5)
+            result["daemon_exit"] = daemon.returncode
+            if t_air is not None:
+                result["steady_state"] = steady_state(samples_path, t_air + SETTLE_S)
+        if listener is not None:
+            listener.close()
+        sim.stop()
+        pilot_client.close()
+        if pilot is not None:
+            pilot.join(2.0)
+        if result["error"]:
+            try:
+                with open(daemon_log) as f:
+                    result["daemon_log_tail"] = f.read()[-2000:]
+            except OSError:
+                pass
+        tmp.cleanup()
+    return result
+
+
+def steady_state(samples_path: str, t_from: float) -> dict:
+    """Figures from the probe's samples taken after ``t_from`` (monotonic s), and the parts of the
+    frame-to-setpoint latency (ms): frame stamp -> queue, queue wait, mapper step + insert."""
+    import numpy as np
+
+    from benchmarks.common import summary
+
+    try:
+        with open(samples_path) as f:
+            data = json.load(f)
+    except (OSError, ValueError) as exc:
+        return {"error": f"no probe samples: {exc}"}
+    logs = data["logs"]
+    out: dict = {"from_s_after_takeoff": SETTLE_S, "missing": data.get("missing", [])}
+    for key in ("frame_to_setpoint_ms", "jitter_ms", "step_ms"):
+        out[key] = summary([v for t, v in logs.get(key, []) if t >= t_from])
+    put = {round(ts, 9): now for t, ts, now in logs.get("put", []) if t >= t_from}
+    cap, wait, mapping = [], [], []
+    for t, ts, t0, t1 in logs.get("map", []):
+        q = put.get(round(ts, 9))
+        if t < t_from or q is None:
+            continue
+        cap.append((q - ts) * 1e3)
+        wait.append((t0 - q) * 1e3)
+        mapping.append((t1 - t0) * 1e3)
+    out["parts_ms"] = {"capture_to_queue": summary(cap), "queue_wait": summary(wait), "map_step_and_insert": summary(mapping),
+                       "render_in_daemon": summary([v for t, v in logs.get("render", []) if t >= t_from])}
+    # The daemon's own share of each latency sample: minus the capture -> queue part of its frame
+    # (the frame is the last one mapped before the sample was taken).
+    mapped = sorted((t, round(ts, 9)) for t, ts, _, _ in logs.get("map", []))
+    mapped_t = [t for t, _ in mapped]
+    own = []
+    for t, v in logs.get("frame_to_setpoint_ms", []):
+        i = bisect.bisect_right(mapped_t, t) - 1
+        if t >= t_from and i >= 0 and mapped[i][1] in put:
+            own.append(v - (put[mapped[i][1]] - mapped[i][1]) * 1e3)
+    out["queue_to_setpoint_ms"] = summary(own)
+    if cap and out["frame_to_setpoint_ms"]["n"]:
+        out["parts_ms"]["rest_to_setpoint_p50"] = out["frame_to_setpoint_ms"]["median"] - float(
+            np.median(cap) + np.median(wait) + np.median(mapping))
+    return out
+
+
+def _wait_listener(endpoint: str, timeout_s: float) -> StatusListener | None:
+    """A client session once the daemon's Zenoh peer listens (it takes a moment to start)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            return StatusListener(endpoint)
+        except Exception:  # noqa: BLE001 - not listening yet
+            time.sleep(0.5)
+    return None
+
+
+if __name__ == "__main__":
+    print(json.dumps(run_daemon_benchmark(float(sys.argv[1]) if len(sys.argv) > 1 else 20.0), indent=1))

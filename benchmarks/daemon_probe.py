@@ -1,0 +1,111 @@
+"""``companion run`` with a probe: the same :class:`companion.daemon.Daemon`, started the way
+``companion run --config FILE`` starts it, that also keeps every latency and jitter sample with the
+time it was taken and writes them to a JSON file when it stops.
+
+Why: the daemon's status gives p50/p99 over its last 2000 samples since start, so a run's figures
+include the start-up (imports, renderer build, take-off). With the time of each sample the
+benchmark can also report the steady state (samples after take-off), and split the
+frame-to-setpoint latency into its parts:
+
+- ``capture_to_queue``: frame stamp -> frame in the mapper's queue (for the synthetic camera: age
+  of the simulator pose it renders from, plus the render);
+- ``queue_wait``: in the queue until the mapper thread takes it;
+- ``map``: mapper step + grid insert (``Daemon._map_frame``);
+- the rest, to the setpoint: waking the event loop and the control step.
+
+It also times the synthetic camera's render (``Renderer.render``), which runs inside the daemon's
+process in simulation only.
+
+Nothing in the daemon is changed; the probe replaces the daemon's sample windows with subclasses
+that also log, and wraps two of its methods on the instance.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+import time
+
+
+def main(argv=None) -> int:
+    from companion.config import ConfigError, load_config
+    from companion.daemon import Daemon, Percentiles, _run, setup_logging
+
+    p = argparse.ArgumentParser(prog="python -m benchmarks.daemon_probe")
+    p.add_argument("--config", required=True)
+    p.add_argument("--samples", required=True, help="JSON file written at exit")
+    p.add_argument("--log-level", default="WARNING")
+    args = p.parse_args(argv)
+    setup_logging(args.log_level)
+    try:
+        daemon = Daemon(load_config(args.config))
+    except ConfigError as exc:
+        print(f"configuration: {exc}", file=sys.stderr)
+        return 2
+
+    class Logged(Percentiles):
+        """The daemon's window (unchanged for its status) that also logs (monotonic time, value)."""
+
+        def __init__(self, log: list):
+            super().__init__()
+            self.log = log
+
+        def add(self, v: float) -> None:
+            super().add(v)
+            self.log.append((time.monotonic(), v))
+
+    logs: dict[str, list] = {"frame_to_setpoint_ms": [], "jitter_ms": [], "step_ms": [], "put": [], "map": [], "render": []}
+    missing = []
+    for attr, key in (("frame_to_setpoint_ms", "frame_to_setpoint_ms"), ("control_jitter_ms", "jitter_ms"),
+                      ("step_ms", "step_ms")):
+        if isinstance(getattr(daemon, attr, None), Percentiles):
+            setattr(daemon, attr, Logged(logs[key]))
+        else:
+            missing.append(attr)
+    clock = daemon.clock
+    frames = getattr(daemon, "frames", None)
+    if frames is not None and hasattr(frames, "put"):
+        put = frames.put
+
+        def logged_put(frame):
+            logs["put"].append((time.monotonic(), frame.t_s, clock.now()))
+            put(frame)
+
+        frames.put = logged_put
+    if hasattr(daemon, "_map_frame"):
+        map_frame = daemon._map_frame
+
+        def logged_map(frame):
+            t0 = clock.now()
+            map_frame(frame)
+            logs["map"].append((time.monotonic(), frame.t_s, t0, clock.now()))
+
+        daemon._map_frame = logged_map
+    try:  # the synthetic camera's render runs in this process (a real camera's work would not)
+        from drivers.sim.renderer import Renderer
+
+        render = Renderer.render
+
+        def logged_render(self, *a, **k):
+            t0 = time.perf_counter()
+            try:
+                return render(self, *a, **k)
+            finally:
+                logs["render"].append((time.monotonic(), (time.perf_counter() - t0) * 1e3))
+
+        Renderer.render = logged_render
+    except ImportError:
+        pass
+    try:
+        asyncio.run(_run(daemon))
+    finally:
+        with open(args.samples, "w") as f:
+            json.dump({"logs": logs, "missing": missing, "speedup": clock.speedup if hasattr(clock, "speedup") else None},
+                      f)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,445 @@
+"""Mapper throughput on rendered frames: frames per second at N features, the distance to the
+floor (OpenCV's Harris response alone), the scaling with N, where the time goes, and the batched
+code against the per-feature loop reference (issue 7).
+
+Every figure is the whole ``Mapper.step`` (detect -> undistort -> predict -> match -> update ->
+initialise; with ``with_grid`` also the depth prior from the terrain map and the insertion of the
+converged points), one core, OpenCV single-threaded, on the frames of
+:func:`benchmarks.common.render_flight`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from contextlib import ExitStack, contextmanager, nullcontext
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+
+from benchmarks import reference_loop
+from benchmarks.common import Flight, mapper_config, summary
+from companion.mapper import Mapper
+from companion.mapper.features import HarrisDetector
+
+
+def new_mapper(flight: Flight, n_features: int, depth_prior=None) -> Mapper:
+    return Mapper(mapper_config(n_features, flight.cfg.mapper), flight.camera, flight.mount, depth_prior=depth_prior,
+                  default_ground_alt_m=flight.cfg.terrain.default_ground_alt_m, border_px=flight.cfg.camera.border_px)
+
+
+def harris_floor_ms(gray: np.ndarray, cfg, out: np.ndarray) -> float:
+    """Time (ms) of OpenCV's Harris response alone on one grey frame, the mapper's own parameters."""
+    t0 = time.perf_counter()
+    cv2.cornerHarris(gray, cfg.harris_block_size, 3, cfg.harris_k, dst=out)
+    return (time.perf_counter() - t0) * 1e3
+
+
+@dataclass
+class Variant:
+    """One mapper configuration in an interleaved run: ``make()`` builds a fresh mapper;
+    ``grid()`` (optional) a fresh TerrainGrid used as its depth prior and fed its points (as the
+    daemon does; the insert is in the step time); ``context()`` (optional) is entered around each
+    of its steps (outside the timed region), e.g. the loop reference's function swap."""
+
+    make: Callable[..., Mapper]
+    grid: Callable[[], object] | None = None
+    context: Callable[[], object] | None = None
+
+
+def variant(flight: Flight, n_features: int, grid=None, loop: bool = False) -> Variant:
+    def make(prior=None):
+        m = new_mapper(flight, n_features, prior)
+        if loop:
+            m.model = reference_loop.loop_model()
+        return m
+
+    return Variant(make, grid, reference_loop.loop_reference if loop else None)
+
+
+def run_interleaved(flight: Flight, variants: dict, repeats: int = 1, warmup_frames: int = 30,
+                    frames: int | None = None, with_floor: bool = False) -> dict:
+    """Time ``Mapper.step`` of every variant over the flight, frame by frame in turn (the order
+    rotates), ``repeats`` times with fresh mappers, so that the load of this shared machine falls
+    on all of them alike. A warm-up pass over the first ``warmup_frames`` (untimed) comes first.
+    ``with_floor`` also times ``cv2.cornerHarris`` alone on each frame (the floor).
+
+    Returns, per variant name: per-frame step times (ms) of all repeats, throughput per repeat
+    (frames / sum of step times) and the mean tracking counts; with ``with_floor`` each also has
+    its ratio to the Harris floor.
+    """
+    n = len(flight) if frames is None else min(frames, len(flight))
+    names = list(variants)
+
+    def build(v: Variant):
+        grid = v.grid() if v.grid is not None else None
+        prior = None
+        if grid is not None:
+            max_range = flight.cfg.mapper.prior_max_range_m
+
+            def prior(origin, rays, grid=grid):
+                return grid.ray_range(origin, rays, max_range)
+
+        return v.make(prior), grid
+
+    def step(name, state, k):
+        v = variants[name]
+        mapper, grid = state
+        ctx = v.context() if v.context is not None else nullcontext()
+        with ctx:
+            t0 = time.perf_counter()
+            s = mapper.step(flight.navs[k], flight.images[k])
+            if grid is not None and len(s.points):
+                grid.insert(s.points)
+            dt = time.perf_counter() - t0
+        return s, dt
+
+    warm = {name: build(variants[name]) for name in names}
+    for k in range(min(warmup_frames, n)):
+        for name in names:
+            step(name, warm[name], k)
+    step_ms = {name: [] for name in names}
+    totals = {name: [] for name in names}
+    counts = {name: [] for name in names}
+    floor_ms: list[float] = []
+    buf = np.empty(flight.images[0].shape[:2], np.float32)
+    base_cfg = flight.cfg.mapper
+    for _ in range(repeats):
+        state = {name: build(variants[name]) for name in names}
+        total = dict.fromkeys(names, 0.0)
+        for k in range(n):
+            if with_floor:
+                floor_ms.append(harris_floor_ms(flight.images[k], base_cfg, buf))
+            for j in range(len(names)):
+                name = names[(j + k) % len(names)]
+                s, dt = step(name, state[name], k)
+                total[name] += dt
+                step_ms[name].append(dt * 1e3)
+                counts[name].append((s.n_measurements, s.n_matched, s.n_initialised, s.n_active, len(s.points)))
+        for name in names:
+            totals[name].append(n / total[name])
+    out = {}
+    for name in names:
+        c = np.asarray(counts[name], float).reshape(-1, 5)
+        r = {
+            "frames": n, "repeats": repeats, "step_ms": summary(step_ms[name]),
+            "fps": float(np.median(totals[name])), "fps_repeats": [round(f, 1) for f in totals[name]],
+            "measurements": float(c[:, 0].mean()), "matched": float(c[:, 1].mean()),
+            "initialised": float(c[:, 2].mean()), "active": float(c[:, 3].mean()),
+            "points_per_frame": float(c[:, 4].mean()), "_step_ms": step_ms[name],
+        }
+        if with_floor:
+            per_frame = np.asarray(step_ms[name]) / np.asarray(floor_ms)
+            r["harris_ms"] = summary(floor_ms)
+            r["floor_ratio"] = r["step_ms"]["median"] / r["harris_ms"]["median"]
+            r["floor_ratio_per_frame_median"] = float(np.median(per_frame))
+        out[name] = r
+    return out
+
+
+def run_mapper(flight: Flight, n_features: int, repeats: int = 1, warmup_frames: int = 30, frames: int | None = None,
+               with_floor: bool = False, grid=None) -> dict:
+    """:func:`run_interleaved` of one mapper with ``n_features`` (``grid``: a TerrainGrid factory)."""
+    r = run_interleaved(flight, {n_features: variant(flight, n_features, grid)}, repeats, warmup_frames, frames,
+                        with_floor)[n_features]
+    r["n_features"] = n_features
+    return r
+
+
+# ------------------------------------------------------------------------------------------------
+# Where the time goes: timers wrapped around the functions a step calls
+# ------------------------------------------------------------------------------------------------
+
+
+class SectionTimer:
+    """Accumulates wall time per named section; :meth:`wrap` returns a timing wrapper."""
+
+    def __init__(self):
+        self.total: dict[str, float] = {}
+        self.calls: dict[str, int] = {}
+
+    def wrap(self, name: str, fn):
+        total, calls = self.total, self.calls
+        total.setdefault(name, 0.0)
+        calls.setdefault(name, 0)
+
+        def timed(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                total[name] += time.perf_counter() - t0
+                calls[name] += 1
+
+        return timed
+
+
+@contextmanager
+def _patched(obj, name: str, timer: SectionTimer, label: str, missing: list):
+    if not hasattr(obj, name):
+        missing.append(label)
+        yield
+        return
+    original = getattr(obj, name)
+    setattr(obj, name, timer.wrap(label, original))
+    try:
+        yield
+    finally:
+        setattr(obj, name, original)
+
+
+# (label, owner, attribute): detector stages, mapper stages in step order. The mapper module's
+# functions are looked up there (it imports them by name); the model's through the mapper's model.
+DETECTOR_SECTIONS = [
+    ("detect: Harris response (cv2.cornerHarris)", HarrisDetector, "harris_response"),
+    ("detect: valid region / black border", HarrisDetector, "valid_region"),
+    ("detect: local maxima (dilate, compare, nonzero)", HarrisDetector, "candidate_maxima"),
+    ("detect: sub-pixel refine (cv2.cornerSubPix)", HarrisDetector, "refine"),
+]
+MAPPER_FUNCTIONS = [
+    ("check_nav (x2: step and step_measurements)", "check_nav"),
+    ("match: innovation covariance S (eq. 10)", "innovation_covariance"),
+    ("match: Mahalanobis distances N x M (eqs. 11-12)", "mahalanobis_distances"),
+    ("match: gate and mutual nearest", "gate_and_match"),
+    ("update: EKF (eqs. 7-9)", "ekf_update"),
+    ("init: exclusion near stored features (N x M)", "near_stored_features"),
+    ("init: depth prior", "prior_ranges"),
+]
+MODEL_FUNCTIONS = [
+    ("predict: measurement model (eqs. 3-4)", "measurement_model"),
+    ("match: Jacobians (eq. 5)", "measurement_jacobian"),
+    ("init: initialise features (eqs. 13-17)", "initialise_features"),
+    ("converge: relative depth sigma", "relative_depth_sigma"),
+]
+
+
+def section_profile(flight: Flight, n_features: int, frames: int) -> dict:
+    """Mean ms per frame of each section of ``Mapper.step`` (timers around the functions it calls),
+    plus the untimed rest: detector selection (greedy distance, bins) and the step's bookkeeping."""
+    import companion.mapper.mapper as mapper_module
+
+    n = min(frames, len(flight))
+    mapper = new_mapper(flight, n_features)
+    for k in range(min(30, n)):  # warm-up
+        mapper.step(flight.navs[k], flight.images[k])
+    mapper = new_mapper(flight, n_features)
+    timer = SectionTimer()
+    missing: list[str] = []
+    model = mapper.model
+    mapper.model = SimpleNamespace(**{k: getattr(model, k) for k in dir(model) if not k.startswith("__")})
+    with ExitStack() as stack:
+        for label, owner, attr in DETECTOR_SECTIONS:
+            stack.enter_context(_patched(owner, attr, timer, label, missing))
+        for label, attr in MAPPER_FUNCTIONS:
+            stack.enter_context(_patched(mapper_module, attr, timer, label, missing))
+        for label, attr in MODEL_FUNCTIONS:
+            stack.enter_context(_patched(mapper.model, attr, timer, label, missing))
+        stack.enter_context(_patched(Mapper, "_emitted_points", timer, "emit: converged points out", missing))
+        stack.enter_context(_patched(HarrisDetector, "__call__", timer, "_detector", missing))
+        stack.enter_context(_patched(Mapper, "step_measurements", timer, "_measurements", missing))
+        t0 = time.perf_counter()
+        for k in range(n):
+            mapper.step(flight.navs[k], flight.images[k])
+        wall = time.perf_counter() - t0
+    mapper.model = model
+    per = {k: v / n * 1e3 for k, v in timer.total.items()}
+    detector = per.pop("_detector", 0.0)
+    measurements = per.pop("_measurements", 0.0)
+    step = wall / n * 1e3
+    det_parts = sum(v for k, v in per.items() if k.startswith("detect:"))
+    # check_nav runs once inside step_measurements and once before detection
+    meas_parts = sum(v for k, v in per.items() if not k.startswith("detect:")) - 0.5 * per.get(MAPPER_FUNCTIONS[0][0], 0.0)
+    rows = dict(per)
+    rows["detect: selection (greedy distance, bins, max) and glue"] = detector - det_parts
+    rows["step bookkeeping (database, masks, emission glue)"] = measurements - meas_parts
+    rows["step: undistort, image checks, the rest"] = step - detector - measurements - 0.5 * per.get(MAPPER_FUNCTIONS[0][0], 0.0)
+    return {"n_features": n_features, "frames": n, "step_ms_mean": step, "sections_ms": rows,
+            "calls": dict(timer.calls), "not_found": missing}
+
+
+def cprofile_top(flight: Flight, n_features: int, frames: int, top: int = 25) -> str:
+    """cProfile of ``frames`` steps, sorted by own time (text)."""
+    import cProfile
+    import io
+    import pstats
+
+    mapper = new_mapper(flight, n_features)
+    prof = cProfile.Profile()
+    prof.enable()
+    for k in range(min(frames, len(flight))):
+        mapper.step(flight.navs[k], flight.images[k])
+    prof.disable()
+    s = io.StringIO()
+    pstats.Stats(prof, stream=s).sort_stats("tottime").print_stats(top)
+    return s.getvalue()
+
+
+# ------------------------------------------------------------------------------------------------
+# Batched against the per-feature loop reference
+# ------------------------------------------------------------------------------------------------
+
+
+def record_match_inputs(flight: Flight, n_features: int, frames: int) -> list[dict]:
+    """Inputs of the match+update part of each step, as the mapper had them: the stored features
+    (states, covariances, reference rotations), the camera pose, P_x and the measurements."""
+    from companion.mapper.projection import CameraPose
+
+    mapper = new_mapper(flight, n_features)
+    cfg = mapper.cfg
+    detector = HarrisDetector(cfg, flight.camera.width, flight.camera.height, flight.cfg.camera.border_px)
+    out = []
+    for k in range(min(frames, len(flight))):
+        nav, img = flight.navs[k], flight.images[k]
+        uv, _ = detector(img)
+        z = flight.camera.undistort(uv)
+        slots = mapper.db.active_slots()
+        P_x = nav.pose_covariance
+        out.append({
+            "y": mapper.db.y[slots].copy(), "P": mapper.db.P[slots].copy(), "R_ref": mapper.db.R_ref[slots].copy(),
+            "pose": CameraPose.from_body(nav.position_ned_m, nav.R_nb, flight.mount),
+            "P_x": 0.5 * (P_x + P_x.T), "z": z[flight.camera.in_image(z)],
+        })
+        mapper.step_measurements(nav, z)
+    return out
+
+
+def match_update(model, fns, inp: dict, camera, cfg, R_img) -> tuple:
+    """Predict -> drop the invisible -> Jacobians -> S -> distances -> gate -> update -> exclusion,
+    with the given model (measurement model and Jacobian) and functions (matching and update)."""
+    y, P, R_ref, pose, P_x, z = inp["y"], inp["P"], inp["R_ref"], inp["pose"], inp["P_x"], inp["z"]
+    uv, h = model.measurement_model(y, R_ref, pose, camera)
+    vis = (h[:, 0] > 0) & camera.in_image(uv)
+    y, P, R_ref, uv, h = y[vis], P[vis], R_ref[vis], uv[vis], h[vis]
+    C_x, C_y = model.measurement_jacobian(y, R_ref, pose, camera, h)
+    S = fns.innovation_covariance(C_x, C_y, P_x, P, R_img)
+    Z = fns.mahalanobis_distances(z, uv, S)
+    pi, mi, ambiguous = fns.gate_and_match(Z, cfg.gate_chi2)
+    y1, P1, ok = fns.ekf_update(y[pi], P[pi], z[mi] - uv[pi], C_x[pi], C_y[pi], P_x, R_img)
+    blocked = ambiguous | fns.near_stored_features(Z, z, uv, cfg.init_exclusion_chi2, cfg.min_distance_px)
+    return y1, P1, ok, pi, mi, blocked
+
+
+def batched_functions():
+    from companion.mapper import inverse_depth, matching, update
+
+    fns = SimpleNamespace(innovation_covariance=matching.innovation_covariance,
+                          mahalanobis_distances=matching.mahalanobis_distances,
+                          gate_and_match=matching.gate_and_match,
+                          near_stored_features=matching.near_stored_features,
+                          ekf_update=update.ekf_update)
+    return inverse_depth, fns
+
+
+def compare_match_update(flight: Flight, n_features: int, frames: int, repeats: int = 3) -> dict:
+    """Time the match+update part, batched and loop, on the same recorded inputs; check they agree."""
+    inputs = record_match_inputs(flight, n_features, frames)
+    inputs = [i for i in inputs if len(i["y"])]
+    cfg = mapper_config(n_features, flight.cfg.mapper)
+    R_img = np.diag([cfg.pixel_sigma_px**2] * 2)
+    b_model, b_fns = batched_functions()
+    l_model, l_fns = reference_loop.loop_model(), reference_loop
+    max_dy, same_matches = 0.0, 0
+    for inp in inputs:
+        a = match_update(b_model, b_fns, inp, flight.camera, cfg, R_img)
+        b = match_update(l_model, l_fns, inp, flight.camera, cfg, R_img)
+        if all(np.array_equal(x, w) for x, w in zip(a[2:], b[2:])):
+            same_matches += 1
+            if len(a[0]):
+                max_dy = max(max_dy, float(np.max(np.abs(a[0] - b[0]))), float(np.max(np.abs(a[1] - b[1]))))
+    per_frame = {"batched": [], "loop": []}
+    impls = {"batched": (b_model, b_fns), "loop": (l_model, l_fns)}
+    for r in range(repeats):
+        for k, inp in enumerate(inputs):
+            for name in (("batched", "loop") if (k + r) % 2 == 0 else ("loop", "batched")):
+                model, fns = impls[name]
+                t0 = time.perf_counter()
+                match_update(model, fns, inp, flight.camera, cfg, R_img)
+                per_frame[name].append((time.perf_counter() - t0) * 1e3)
+    times = {name: summary(v) for name, v in per_frame.items()}
+    return {
+        "n_features": n_features, "frames": len(inputs),
+        "features_mean": float(np.mean([len(i["y"]) for i in inputs])),
+        "measurements_mean": float(np.mean([len(i["z"]) for i in inputs])),
+        "batched_ms": times["batched"], "loop_ms": times["loop"],
+        "speedup": times["loop"]["median"] / times["batched"]["median"],
+        "identical_decisions": f"{same_matches}/{len(inputs)}", "max_abs_state_difference": max_dy,
+    }
+
+
+def compare_whole_step(flight: Flight, n_features: int, frames: int) -> dict:
+    """The whole ``Mapper.step`` with the batched equations and with the loop reference,
+    interleaved frame by frame on the same frames."""
+    r = run_interleaved(flight, {"batched": variant(flight, n_features), "loop": variant(flight, n_features, loop=True)},
+                        repeats=1, warmup_frames=10, frames=frames)
+    b, lp = r["batched"], r["loop"]
+    return {
+        "n_features": n_features, "frames": b["frames"],
+        "batched_step_ms": b["step_ms"], "loop_step_ms": lp["step_ms"],
+        "batched_fps": b["fps"], "loop_fps": lp["fps"],
+        "speedup": lp["step_ms"]["median"] / b["step_ms"]["median"],
+        "matched_mean": (b["matched"], lp["matched"]),
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# Evidence for the first optimisation proposal (docs/performance.md): the N x M distances
+# ------------------------------------------------------------------------------------------------
+
+
+def distances_by_components(z: np.ndarray, g: np.ndarray, S: np.ndarray, exclusion_chi2: float, exclusion_px: float):
+    """Prototype of eqs. 11-12 and the exclusion test without ``einsum`` or ``(N, M, 2)``
+    temporaries: the differences per axis ``(N, M)`` once, ``Z = a e0^2 + 2 b e0 e1 + c e1^2`` from
+    the three entries of ``S^-1``, and the pixel distance from the same differences. Returns
+    ``Z (N, M)`` and ``near (M,)`` equal to ``mahalanobis_distances`` and ``near_stored_features``."""
+    from companion.mapper.matching import inverse_2x2
+
+    S_inv, ok = inverse_2x2(S)
+    e0 = z[None, :, 0] - g[:, 0, None]
+    e1 = z[None, :, 1] - g[:, 1, None]
+    Z = S_inv[:, 0, 0, None] * (e0 * e0) + (2.0 * S_inv[:, 0, 1, None]) * (e0 * e1) + S_inv[:, 1, 1, None] * (e1 * e1)
+    Z[~ok, :] = np.inf
+    if len(g) == 0 or len(z) == 0:
+        return Z, np.zeros(len(z), dtype=bool)
+    near = ((Z < exclusion_chi2) | (e0 * e0 + e1 * e1 < exclusion_px**2)).any(axis=0)
+    return Z, near
+
+
+def distance_proposal(flight: Flight, n_features: int, frames: int) -> dict:
+    """Current ``mahalanobis_distances`` + ``near_stored_features`` against
+    :func:`distances_by_components`, interleaved on the recorded inputs of real steps; checks they agree."""
+    from companion.mapper import matching
+
+    inputs = [i for i in record_match_inputs(flight, n_features, frames) if len(i["y"])]
+    cfg = mapper_config(n_features, flight.cfg.mapper)
+    R_img = np.diag([cfg.pixel_sigma_px**2] * 2)
+    model, fns = batched_functions()
+    cases = []
+    for inp in inputs:
+        uv, h = model.measurement_model(inp["y"], inp["R_ref"], inp["pose"], flight.camera)
+        vis = (h[:, 0] > 0) & flight.camera.in_image(uv)
+        C_x, C_y = model.measurement_jacobian(inp["y"][vis], inp["R_ref"][vis], inp["pose"], flight.camera, h[vis])
+        S = fns.innovation_covariance(C_x, C_y, inp["P_x"], inp["P"][vis], R_img)
+        cases.append((inp["z"], uv[vis], S))
+    now, proto, max_rel = [], [], 0.0
+    for k, (z, g, S) in enumerate(cases):
+        for which in ((0, 1) if k % 2 == 0 else (1, 0)):
+            t0 = time.perf_counter()
+            if which == 0:
+                Z = matching.mahalanobis_distances(z, g, S)
+                near = matching.near_stored_features(Z, z, g, cfg.init_exclusion_chi2, cfg.min_distance_px)
+                now.append((time.perf_counter() - t0) * 1e3)
+                ref = (Z, near)
+            else:
+                Z2, near2 = distances_by_components(z, g, S, cfg.init_exclusion_chi2, cfg.min_distance_px)
+                proto.append((time.perf_counter() - t0) * 1e3)
+        fin = np.isfinite(ref[0])
+        if fin.any():
+            max_rel = max(max_rel, float(np.max(np.abs(Z2[fin] - ref[0][fin]) / np.maximum(1.0, np.abs(ref[0][fin])))))
+        if not (np.array_equal(np.isinf(Z2), np.isinf(ref[0])) and np.array_equal(near2, ref[1])):
+            max_rel = float("inf")
+    a, b = summary(now), summary(proto)
+    return {"n_features": n_features, "frames": len(cases), "current_ms": a, "prototype_ms": b,
+            "saved_ms_median": a["median"] - b["median"], "speedup": a["median"] / b["median"],
+            "max_relative_difference": max_rel}
