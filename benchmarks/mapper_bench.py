@@ -30,11 +30,12 @@ def new_mapper(flight: Flight, n_features: int, depth_prior=None) -> Mapper:
                   default_ground_alt_m=flight.cfg.terrain.default_ground_alt_m, border_px=flight.cfg.camera.border_px)
 
 
-def harris_floor_ms(gray: np.ndarray, cfg, out: np.ndarray) -> float:
-    """Time (ms) of OpenCV's Harris response alone on one grey frame, the mapper's own parameters."""
-    t0 = time.perf_counter()
+def harris_floor_ms(gray: np.ndarray, cfg, out: np.ndarray) -> tuple[float, float]:
+    """Wall and CPU time (ms) of OpenCV's Harris response alone on one grey frame, with the
+    mapper's own parameters."""
+    c0, t0 = time.thread_time(), time.perf_counter()
     cv2.cornerHarris(gray, cfg.harris_block_size, 3, cfg.harris_k, dst=out)
-    return (time.perf_counter() - t0) * 1e3
+    return (time.perf_counter() - t0) * 1e3, (time.thread_time() - c0) * 1e3
 
 
 @dataclass
@@ -66,9 +67,10 @@ def run_interleaved(flight: Flight, variants: dict, repeats: int = 1, warmup_fra
     on all of them alike. A warm-up pass over the first ``warmup_frames`` (untimed) comes first.
     ``with_floor`` also times ``cv2.cornerHarris`` alone on each frame (the floor).
 
-    Returns, per variant name: per-frame step times (ms) of all repeats, throughput per repeat
-    (frames / sum of step times) and the mean tracking counts; with ``with_floor`` each also has
-    its ratio to the Harris floor.
+    Returns, per variant name: per-frame step times (ms) of all repeats, wall-clock and CPU
+    (``time.thread_time``: what the step cost this thread, without the time other processes of
+    this shared machine held the core), throughput per repeat (frames / sum of step times) and
+    the mean tracking counts; with ``with_floor`` each also has its ratio to the Harris floor.
     """
     n = len(flight) if frames is None else min(frames, len(flight))
     names = list(variants)
@@ -89,21 +91,23 @@ def run_interleaved(flight: Flight, variants: dict, repeats: int = 1, warmup_fra
         mapper, grid = state
         ctx = v.context() if v.context is not None else nullcontext()
         with ctx:
-            t0 = time.perf_counter()
+            c0, t0 = time.thread_time(), time.perf_counter()
             s = mapper.step(flight.navs[k], flight.images[k])
             if grid is not None and len(s.points):
                 grid.insert(s.points)
-            dt = time.perf_counter() - t0
-        return s, dt
+            dt, dc = time.perf_counter() - t0, time.thread_time() - c0
+        return s, dt, dc
 
     warm = {name: build(variants[name]) for name in names}
     for k in range(min(warmup_frames, n)):
         for name in names:
             step(name, warm[name], k)
     step_ms = {name: [] for name in names}
+    cpu_ms = {name: [] for name in names}
     totals = {name: [] for name in names}
     counts = {name: [] for name in names}
     floor_ms: list[float] = []
+    floor_cpu_ms: list[float] = []
     buf = np.empty(flight.images[0].shape[:2], np.float32)
     base_cfg = flight.cfg.mapper
     for _ in range(repeats):
@@ -111,12 +115,15 @@ def run_interleaved(flight: Flight, variants: dict, repeats: int = 1, warmup_fra
         total = dict.fromkeys(names, 0.0)
         for k in range(n):
             if with_floor:
-                floor_ms.append(harris_floor_ms(flight.images[k], base_cfg, buf))
+                wall, cpu = harris_floor_ms(flight.images[k], base_cfg, buf)
+                floor_ms.append(wall)
+                floor_cpu_ms.append(cpu)
             for j in range(len(names)):
                 name = names[(j + k) % len(names)]
-                s, dt = step(name, state[name], k)
+                s, dt, dc = step(name, state[name], k)
                 total[name] += dt
                 step_ms[name].append(dt * 1e3)
+                cpu_ms[name].append(dc * 1e3)
                 counts[name].append((s.n_measurements, s.n_matched, s.n_initialised, s.n_active, len(s.points)))
         for name in names:
             totals[name].append(n / total[name])
@@ -124,7 +131,8 @@ def run_interleaved(flight: Flight, variants: dict, repeats: int = 1, warmup_fra
     for name in names:
         c = np.asarray(counts[name], float).reshape(-1, 5)
         r = {
-            "frames": n, "repeats": repeats, "step_ms": summary(step_ms[name]),
+            "frames": n, "repeats": repeats, "step_ms": summary(step_ms[name]), "step_cpu_ms": summary(cpu_ms[name]),
+            "fps_cpu": n / (sum(cpu_ms[name]) / 1e3 / repeats),
             "fps": float(np.median(totals[name])), "fps_repeats": [round(f, 1) for f in totals[name]],
             "measurements": float(c[:, 0].mean()), "matched": float(c[:, 1].mean()),
             "initialised": float(c[:, 2].mean()), "active": float(c[:, 3].mean()),
@@ -135,6 +143,8 @@ def run_interleaved(flight: Flight, variants: dict, repeats: int = 1, warmup_fra
             r["harris_ms"] = summary(floor_ms)
             r["floor_ratio"] = r["step_ms"]["median"] / r["harris_ms"]["median"]
             r["floor_ratio_per_frame_median"] = float(np.median(per_frame))
+            r["harris_cpu_ms"] = summary(floor_cpu_ms)
+            r["floor_ratio_cpu"] = r["step_cpu_ms"]["median"] / r["harris_cpu_ms"]["median"]
         out[name] = r
     return out
 

@@ -12,9 +12,10 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks import common
+from benchmarks import common, daemon_bench, map_bench, mapper_bench
 from benchmarks.common import fmt, table
 
 RESULTS = Path(__file__).resolve().parent / "results.json"
@@ -32,12 +33,41 @@ TARGETS = {
 }
 
 
+@dataclass(frozen=True)
+class Plan:
+    """How much of everything a run measures (``--quick`` or the full run)."""
+
+    quick: bool
+    frames: int  # rendered frames (the headline run uses all of them)
+    repeats: int  # repeats of the headline run
+    scale_frames: int  # frames per feature count in the scaling table
+    feature_counts: tuple[int, ...]
+    profile_frames: int
+    match_update_frames: dict  # features -> frames for the batched / loop comparison
+    whole_step_frames: dict
+    insert_repeats: int
+    query_repeats: int
+    memory_shapes_m: tuple[tuple[float, float], ...]
+    map_sides_m: tuple[float, ...]
+    map_size_frames: int
+    daemon_seconds: float
+
+    @classmethod
+    def make(cls, quick: bool) -> "Plan":
+        if quick:
+            return cls(True, 90, 1, 60, (10, 50, 100, 300, 500), 60, {50: 60, 300: 30}, {50: 40}, 30, 100,
+                       ((100, 100), (1000, 1000), (10000, 100)), (0.0, 1000.0), 40, 8.0)
+        return cls(False, 600, 2, 300, (10, 25, 50, 100, 200, 300, 400, 500), 200, {50: 300, 300: 120},
+                   {50: 150, 300: 60}, 200, 500, ((100, 100), (316, 316), (1000, 1000), (10000, 100)),
+                   (0.0, 300.0, 1000.0, 2000.0), 150, 40.0)
+
+
 def parse_args(argv):
     p = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="short run (under a minute): fewer frames and repeats")
     p.add_argument("--out", default=str(RESULTS), help="results file (default benchmarks/results.json)")
     p.add_argument("--no-daemon", action="store_true", help="skip the daemon run (simulator + companion run)")
-    p.add_argument("--daemon-seconds", type=float, help="daemon run length after take-off (default 40, quick 12)")
+    p.add_argument("--daemon-seconds", type=float, help="daemon run length after take-off (default 40, quick 8)")
     p.add_argument("--gil-experiment", action="store_true",
                    help="also run the daemon with sys.setswitchinterval(0.001) (evidence for a proposal)")
     p.add_argument("--profile", action="store_true", help="also print cProfile's top functions of the mapper step")
@@ -46,112 +76,132 @@ def parse_args(argv):
 
 def main(argv=None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
-    from benchmarks import daemon_bench, map_bench, mapper_bench
-
-    quick = args.quick
-    # frames rendered; repeats of the headline run; frames for the scaling, profile, comparisons
-    n_frames = 90 if quick else 600
-    repeats = 1 if quick else 2
-    scale_frames = 60 if quick else 300
-    profile_frames = 60 if quick else 200
-    feature_counts = [10, 50, 100, 300, 500] if quick else [10, 25, 50, 100, 200, 300, 400, 500]
+    plan = Plan.make(args.quick)
     t_start = time.perf_counter()
     pinned = common.pin_one_core(0)
     machine = common.machine_info()
-    print(f"companion benchmarks ({'quick' if quick else 'full'}): {machine['cpu']}, {machine['cpus']} CPUs, "
+    print(f"companion benchmarks ({'quick' if plan.quick else 'full'}): {machine['cpu']}, {machine['cpus']} CPUs, "
           f"Python {machine['python']}, NumPy {machine['numpy']}, OpenCV {machine['opencv']}")
     print(f"single-core figures on core 0 (pinned: {pinned}), cv2 threads {machine['opencv_threads']}, "
           f"load average {machine['loadavg']}")
-    details: dict = {}
     timings: dict[str, float] = {}
-    last = [time.perf_counter()]
-
-    def section(name: str) -> None:
+    details: dict = {}
+    last = time.perf_counter()
+    sections = [
+        ("flight", lambda: flight_section(plan)),
+        ("mapper", lambda: mapper_section(flight, plan)),
+        ("scaling", lambda: scaling_section(flight, plan)),
+        ("profile", lambda: profile_section(flight, plan, args.profile)),
+        ("batched_vs_loop", lambda: loop_section(flight, plan)),
+        ("map", lambda: map_section(flight, plan)),
+        ("daemon", lambda: daemon_section(plan, args)),
+    ]
+    flight = None
+    for name, run in sections:
+        result = run()
+        if name == "flight":
+            flight, result = result
+        details[name] = result
         now = time.perf_counter()
-        timings[name] = round(now - last[0], 1)
-        last[0] = now
+        timings[name] = round(now - last, 1)
+        last = now
+    values, extra = headline_values(details)
+    print_targets(values, extra)
+    out = {**values, **extra,
+           "targets": {k: {"target": t, "kind": kind, "unit": u, "what": w, "measured": values[k]}
+                       for k, (t, kind, u, w) in TARGETS.items()},
+           "mode": "quick" if plan.quick else "full", "machine": machine,
+           "loadavg_at_end": common.machine_info()["loadavg"],
+           "run_seconds": round(time.perf_counter() - t_start, 1), "section_seconds": timings,
+           "generated_unix_s": round(time.time(), 1), "details": details}
+    Path(args.out).write_text(json.dumps(out, indent=1, default=_json_default))
+    print(f"\nwrote {args.out} ({out['run_seconds']:.0f} s: " + ", ".join(f"{k} {v:g}" for k, v in timings.items()) + ")")
+    return 0
 
-    # -- the flight --------------------------------------------------------------------------
+
+# ------------------------------------------------------------------------------------------------
+# Sections, in the order they run; each prints its tables and returns what goes in the results
+# ------------------------------------------------------------------------------------------------
+
+
+def flight_section(plan: Plan):
     t0 = time.perf_counter()
-    flight = common.render_flight(n_frames)
+    flight = common.render_flight(plan.frames)
     r = common.summary(flight.render_ms)
+    end = common.START_NORTH_M + common.SPEED_MPS * plan.frames / common.RATE_HZ
     print(f"\nrendered {len(flight)} frames 640x480 at {common.RATE_HZ:g} Hz along the default circuit "
-          f"(north {common.START_NORTH_M:g} -> {common.START_NORTH_M + common.SPEED_MPS * n_frames / common.RATE_HZ:.0f} m) "
-          f"in {time.perf_counter() - t0:.1f} s (render median {fmt(r['median'])} ms)")
-    details["flight"] = {"frames": len(flight), "rate_hz": common.RATE_HZ, "render_ms": r}
+          f"(north {common.START_NORTH_M:g} -> {end:.0f} m) in {time.perf_counter() - t0:.1f} s "
+          f"(render median {fmt(r['median'])} ms)")
+    return flight, {"frames": len(flight), "rate_hz": common.RATE_HZ, "render_ms": r}
 
-    section("flight")
 
-    # -- mapper throughput and the floor -----------------------------------------------------
+def mapper_section(flight, plan: Plan) -> dict:
+    """Frames per second at 50 and 300 features and the distance to the Harris floor."""
     print("\n== Mapper step (detect + match + update + initialise), one core ==")
     headline = mapper_bench.run_interleaved(flight, {n: mapper_bench.variant(flight, n) for n in (50, 300)},
-                                            repeats=repeats, with_floor=True)
-    for n, h in headline.items():
-        h["n_features"] = n
+                                            repeats=plan.repeats, with_floor=True)
     rows = []
     for n, h in headline.items():
-        rows.append([str(n), h["step_ms"]["median"], h["step_ms"]["p99"], h["fps"], 1e3 / h["step_ms"]["median"],
-                     h["measurements"], h["matched"], h["active"], h["points_per_frame"]])
-    print(table(["features", "median ms", "p99 ms", "frames/s", "1/median", "meas/frame", "matched", "stored",
-                 "points out"], rows))
+        h["n_features"] = n
+        rows.append([str(n), h["step_ms"]["median"], h["step_ms"]["p99"], h["fps"], h["step_cpu_ms"]["median"],
+                     h["step_cpu_ms"]["p99"], h["fps_cpu"], h["measurements"], h["matched"], h["active"],
+                     h["points_per_frame"]])
+    print(table(["features", "median ms", "p99 ms", "frames/s", "cpu med ms", "cpu p99", "cpu frames/s",
+                 "meas/frame", "matched", "stored", "points out"], rows))
+    print("  (wall clock; 'cpu' = this thread's CPU time, which leaves out what other processes on this shared "
+          "machine took from the core)")
     h50 = headline[50]
     print(f"floor: cv2.cornerHarris alone median {fmt(h50['harris_ms']['median'])} ms (p99 {fmt(h50['harris_ms']['p99'])}); "
-          f"step / Harris = {fmt(h50['floor_ratio'])} (median of per-frame ratios {fmt(h50['floor_ratio_per_frame_median'])})")
-    details["mapper"] = {str(n): {k: v for k, v in h.items() if not k.startswith("_")} for n, h in headline.items()}
+          f"step / Harris = {fmt(h50['floor_ratio'])} (median of per-frame ratios {fmt(h50['floor_ratio_per_frame_median'])}; "
+          f"CPU time: Harris {fmt(h50['harris_cpu_ms']['median'])} ms, ratio {fmt(h50['floor_ratio_cpu'])})")
+    return {str(n): _public(h) for n, h in headline.items()}
 
-    section("mapper throughput")
 
-    # -- scaling with N ----------------------------------------------------------------------
-    print(f"\n== Time per frame against the number of features ({scale_frames} frames, one pass each) ==")
-    runs = mapper_bench.run_interleaved(flight, {n: mapper_bench.variant(flight, n) for n in feature_counts},
-                                        repeats=1, frames=scale_frames)
-    scaling = []
-    for n, s in runs.items():
-        scaling.append({"n_features": n, **{k: v for k, v in s.items() if not k.startswith("_")}})
-    print(table(["features", "median ms", "p99 ms", "frames/s", "meas/frame", "matched", "stored"],
-                [[str(s["n_features"]), s["step_ms"]["median"], s["step_ms"]["p99"], s["fps"], s["measurements"],
-                  s["matched"], s["active"]] for s in scaling]))
-    details["scaling_features"] = scaling
+def scaling_section(flight, plan: Plan) -> list:
+    print(f"\n== Time per frame against the number of features ({plan.scale_frames} frames, one pass each, interleaved) ==")
+    runs = mapper_bench.run_interleaved(flight, {n: mapper_bench.variant(flight, n) for n in plan.feature_counts},
+                                        repeats=1, frames=plan.scale_frames)
+    scaling = [{"n_features": n, **_public(s)} for n, s in runs.items()]
+    print(table(["features", "median ms", "p99 ms", "frames/s", "cpu med ms", "cpu frames/s", "meas/frame", "matched",
+                 "stored"],
+                [[str(s["n_features"]), s["step_ms"]["median"], s["step_ms"]["p99"], s["fps"], s["step_cpu_ms"]["median"],
+                  s["fps_cpu"], s["measurements"], s["matched"], s["active"]] for s in scaling]))
+    return scaling
 
-    section("scaling")
 
-    # -- where the time goes -----------------------------------------------------------------
+def profile_section(flight, plan: Plan, with_cprofile: bool) -> dict:
+    """Where the time goes, and the measured effect of the first proposal."""
     print("\n== Where the time goes (timers around the functions a step calls; mean ms per frame) ==")
-    profiles = {n: mapper_bench.section_profile(flight, n, profile_frames) for n in (50, 300)}
-    labels = list(profiles[50]["sections_ms"])
-    prow = []
-    for label in labels:
-        prow.append([label] + sum(([profiles[n]["sections_ms"].get(label, 0.0),
+    profiles = {n: mapper_bench.section_profile(flight, n, plan.profile_frames) for n in (50, 300)}
+    rows = []
+    for label in profiles[50]["sections_ms"]:
+        rows.append([label] + sum(([profiles[n]["sections_ms"].get(label, 0.0),
                                     100 * profiles[n]["sections_ms"].get(label, 0.0) / profiles[n]["step_ms_mean"]]
                                    for n in (50, 300)), []))
-    prow.sort(key=lambda r: -r[3])
-    prow.append(["whole step (with timers)", profiles[50]["step_ms_mean"], 100.0, profiles[300]["step_ms_mean"], 100.0])
-    print(table(["section", "ms @50", "% @50", "ms @300", "% @300"], prow))
+    rows.sort(key=lambda r: -r[3])
+    rows.append(["whole step (with timers)", profiles[50]["step_ms_mean"], 100.0, profiles[300]["step_ms_mean"], 100.0])
+    print(table(["section", "ms @50", "% @50", "ms @300", "% @300"], rows))
     for n, p in profiles.items():
         if p["not_found"]:
             print(f"  (not timed at {n}: {', '.join(p['not_found'])} - renamed in the mapper?)")
-    details["profile_sections"] = profiles
-    prop = {n: mapper_bench.distance_proposal(flight, n, 40 if quick else 150) for n in (50, 300)}
+    prop = {n: mapper_bench.distance_proposal(flight, n, 40 if plan.quick else 150) for n in (50, 300)}
     print("\nproposal 1 measured: N x M distances + exclusion as now (einsum, (N, M, 2) temporaries) against the "
           "same maths by components (benchmarks/mapper_bench.py:distances_by_components), same inputs:")
     print(table(["features", "now median ms", "now p99", "by components med", "p99", "saved ms", "speedup", "max rel diff"],
                 [[str(n), c["current_ms"]["median"], c["current_ms"]["p99"], c["prototype_ms"]["median"],
                   c["prototype_ms"]["p99"], c["saved_ms_median"], c["speedup"], f"{c['max_relative_difference']:.1e}"]
                  for n, c in prop.items()]))
-    details["proposal_distances"] = prop
-    if args.profile:
+    if with_cprofile:
         for n in (50, 300):
-            print(f"\ncProfile, {n} features, {profile_frames} frames:")
-            print(mapper_bench.cprofile_top(flight, n, profile_frames))
+            print(f"\ncProfile, {n} features, {plan.profile_frames} frames:")
+            print(mapper_bench.cprofile_top(flight, n, plan.profile_frames))
+    return {"sections": profiles, "proposal_distances": prop}
 
-    section("profile")
 
-    # -- batched against the loop reference --------------------------------------------------
-    print("\n== Batched mapper against the per-feature loop reference (same inputs) ==")
-    comp_frames = {50: 60, 300: 30} if quick else {50: 300, 300: 120}
-    whole_frames = {50: 40} if quick else {50: 150, 300: 60}
-    mu = {n: mapper_bench.compare_match_update(flight, n, comp_frames[n], repeats=1) for n in (50, 300)}
-    whole = {n: mapper_bench.compare_whole_step(flight, n, f) for n, f in whole_frames.items()}
+def loop_section(flight, plan: Plan) -> dict:
+    print("\n== Batched mapper against the per-feature loop reference (same inputs, interleaved) ==")
+    mu = {n: mapper_bench.compare_match_update(flight, n, f, repeats=1) for n, f in plan.match_update_frames.items()}
+    whole = {n: mapper_bench.compare_whole_step(flight, n, f) for n, f in plan.whole_step_frames.items()}
     rows = []
     for n, c in mu.items():
         rows.append([f"match+update, {n} features", c["batched_ms"]["median"], c["batched_ms"]["p99"],
@@ -163,15 +213,13 @@ def main(argv=None) -> int:
     print(f"  (stored features {fmt(mu[50]['features_mean'])} / {fmt(mu[300]['features_mean'])}, measurements "
           f"{fmt(mu[50]['measurements_mean'])} / {fmt(mu[300]['measurements_mean'])} per frame; largest state "
           f"difference {mu[300]['max_abs_state_difference']:.1e})")
-    details["batched_vs_loop"] = {"match_update": mu, "whole_step": whole}
+    return {"match_update": mu, "whole_step": whole}
 
-    section("batched vs loop")
 
-    # -- the map -----------------------------------------------------------------------------
+def map_section(flight, plan: Plan) -> dict:
     print("\n== Terrain map (1 m cells) ==")
-    pts = map_bench.converged_points(flight, 1000)
-    ins = map_bench.insert_benchmark(pts, 30 if quick else 200)
-    av = map_bench.avoidance_benchmark(100 if quick else 500)
+    ins = map_bench.insert_benchmark(map_bench.converged_points(flight, 1000), plan.insert_repeats)
+    av = map_bench.avoidance_benchmark(plan.query_repeats)
     print(table(["operation", "median ms", "p99 ms", "note"], [
         ["insert 1,000 converged points, mapped area", ins["mapped_area_ms"]["median"], ins["mapped_area_ms"]["p99"],
          f"{ins['pairs_cells_touched']} cells touched, {ins['tiles']} tiles"],
@@ -180,89 +228,93 @@ def main(argv=None) -> int:
         ["avoidance query, 100 m look-ahead", av["query_ms"]["median"], av["query_ms"]["p99"],
          f"{av['corridor_cells']} corridor cells, engaged {av['engaged_cases']}"],
     ]))
-    shapes = [(100, 100), (316, 316), (1000, 1000), (10000, 100)] if not quick else [(100, 100), (1000, 1000), (10000, 100)]
-    mem = map_bench.memory_table([(float(a), float(b)) for a, b in shapes])
-    print("\nmemory against map area (one point per cell):")
+    mem = map_bench.memory_table(list(plan.memory_shapes_m))
+    print("\nmemory against map area (one point per cell; 'held' includes the tile pool's growth slack):")
     print(table(["area (m)", "km2", "tiles", "MB held", "MB/km2", "MB in tiles/km2"],
                 [[m["shape_m"], m["observed_km2"], str(m["tiles"]), m["memory_MB"], m["MB_per_km2"],
                   m["tiles_MB_per_km2"]] for m in mem]))
-    sides = [0.0, 1000.0] if quick else [0.0, 300.0, 1000.0, 2000.0]
-    vs = map_bench.mapper_vs_map_size(flight, sides, 40 if quick else 150)
-    print("\nmapper per-frame cost against map size (50 features; step + depth prior + insert):")
+    vs = map_bench.mapper_vs_map_size(flight, list(plan.map_sides_m), plan.map_size_frames)
+    print("\nmapper per-frame cost against map size (50 features; step + depth prior + insert; interleaved):")
     print(table(["map side (m)", "km2", "tiles", "step median ms", "step p99 ms", "ray_range ms", "avoid query ms"],
                 [[fmt(v["map_side_m"]), v["map_km2"], str(v["tiles"]), v["step_ms"]["median"], v["step_ms"]["p99"],
                   v["ray_range_ms"], v["avoidance_query_ms"]] for v in vs]))
-    details["map"] = {"insert": ins, "avoidance": av, "memory": mem, "mapper_vs_map_size": vs}
+    return {"insert": ins, "avoidance": av, "memory": mem, "mapper_vs_map_size": vs}
 
-    section("map")
 
-    # -- the daemon --------------------------------------------------------------------------
-    daemon = {"error": "skipped (--no-daemon)"}
-    gil = None
-    if not args.no_daemon:
-        common.unpin()
-        seconds = args.daemon_seconds or (8.0 if quick else 40.0)
-        print(f"\n== Daemon mapping at 30 fps (companion sim + companion run, {seconds:g} s after take-off; "
-              "daemon on core 1, simulator on core 0) ==")
-        daemon = daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print)
-        _print_daemon(daemon)
-        if args.gil_experiment:
-            print("\n  again with the daemon's GIL switch interval at 1 ms (sys.setswitchinterval(0.001)):")
-            gil = daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print, switch_interval_s=0.001)
-            _print_daemon(gil)
-    details["daemon"] = daemon
-    if gil is not None:
-        details["daemon_switch_interval_1ms"] = gil
+def daemon_section(plan: Plan, args) -> dict:
+    if args.no_daemon:
+        return {"error": "skipped (--no-daemon)"}
+    common.unpin()
+    seconds = args.daemon_seconds or plan.daemon_seconds
+    print(f"\n== Daemon mapping at 30 fps (companion sim + companion run, {seconds:g} s after take-off; "
+          "daemon on core 1, simulator on core 0) ==")
+    out = {"default": daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print)}
+    _print_daemon(out["default"])
+    if args.gil_experiment:
+        print("\n  again with the daemon's GIL switch interval at 1 ms (sys.setswitchinterval(0.001)):")
+        out["switch_interval_1ms"] = daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print, switch_interval_s=0.001)
+        _print_daemon(out["switch_interval_1ms"])
+    return out
 
-    section("daemon")
 
-    # -- results -----------------------------------------------------------------------------
-    def p99(d, key):
-        v = (d or {}).get(key) or {}
-        return v.get("p99")
+def headline_values(details: dict) -> tuple[dict, dict]:
+    """The issue's keys (``TARGETS``) and the supporting figures, from the sections' results."""
+    m, loop, mp = details["mapper"], details["batched_vs_loop"], details["map"]
+    daemon = details["daemon"].get("default", details["daemon"])
+    steady = daemon.get("steady_state") or {}
+
+    def get(d, *keys):
+        for k in keys:
+            d = (d or {}).get(k)
+        return d
 
     values = {
-        "mapper_fps_50": headline[50]["fps"],
-        "mapper_fps_300": headline[300]["fps"],
-        "floor_ratio": h50["floor_ratio"],
-        "frame_to_setpoint_p99_ms": p99(daemon, "frame_to_setpoint_ms"),
-        "control_jitter_p99_ms": p99(daemon, "jitter_ms"),
-        "grid_insert_1000_ms": ins["mapped_area_ms"]["median"],
-        "avoidance_query_ms": av["query_ms"]["median"],
-        "batched_vs_loop_speedup": mu[50]["speedup"],
+        "mapper_fps_50": m["50"]["fps"],
+        "mapper_fps_300": m["300"]["fps"],
+        "floor_ratio": m["50"]["floor_ratio"],
+        "frame_to_setpoint_p99_ms": get(daemon, "frame_to_setpoint_ms", "p99"),
+        "control_jitter_p99_ms": get(daemon, "jitter_ms", "p99"),
+        "grid_insert_1000_ms": mp["insert"]["mapped_area_ms"]["median"],
+        "avoidance_query_ms": mp["avoidance"]["query_ms"]["median"],
+        "batched_vs_loop_speedup": loop["match_update"][50]["speedup"],
     }
     extra = {
-        "grid_insert_1000_empty_ms": ins["empty_grid_ms"]["median"],
-        "batched_vs_loop_speedup_300": mu[300]["speedup"],
-        "batched_vs_loop_whole_step_speedup_50": whole[50]["speedup"],
-        "memory_MB_per_km2_square": next(m["MB_per_km2"] for m in mem if m["shape_m"] == "1000 x 1000"),
-        "memory_MB_per_km2_strip": next(m["MB_per_km2"] for m in mem if m["shape_m"] == "10000 x 100"),
-        "frame_to_setpoint_p99_ms_steady": ((daemon.get("steady_state") or {}).get("frame_to_setpoint_ms") or {}).get("p99"),
-        "queue_to_setpoint_p99_ms_steady": ((daemon.get("steady_state") or {}).get("queue_to_setpoint_ms") or {}).get("p99"),
-        "control_jitter_p99_ms_steady": ((daemon.get("steady_state") or {}).get("jitter_ms") or {}).get("p99"),
-        "mapper_step_ms_50": headline[50]["step_ms"],
-        "mapper_step_ms_300": headline[300]["step_ms"],
+        "mapper_fps_50_cpu": m["50"]["fps_cpu"],
+        "mapper_fps_300_cpu": m["300"]["fps_cpu"],
+        "floor_ratio_cpu": m["50"]["floor_ratio_cpu"],
+        "mapper_step_ms_50": m["50"]["step_ms"],
+        "mapper_step_ms_300": m["300"]["step_ms"],
+        "frame_to_setpoint_p99_ms_steady": get(steady, "frame_to_setpoint_ms", "p99"),
+        "queue_to_setpoint_p99_ms_steady": get(steady, "queue_to_setpoint_ms", "p99"),
+        "control_jitter_p99_ms_steady": get(steady, "jitter_ms", "p99"),
+        "grid_insert_1000_empty_ms": mp["insert"]["empty_grid_ms"]["median"],
+        "batched_vs_loop_speedup_300": loop["match_update"][300]["speedup"],
+        "batched_vs_loop_whole_step_speedup_50": loop["whole_step"][50]["speedup"],
+        "memory_MB_per_km2_square": next(r["MB_per_km2"] for r in mp["memory"] if r["shape_m"] == "1000 x 1000"),
+        "memory_MB_per_km2_strip": next(r["MB_per_km2"] for r in mp["memory"] if r["shape_m"] == "10000 x 100"),
     }
+    return values, extra
+
+
+def print_targets(values: dict, extra: dict) -> None:
     print("\n== Targets ==")
-    trows = []
+    rows = []
     for key, (target, kind, unit, what) in TARGETS.items():
         v = values[key]
         met = None if v is None or target is None else (v >= target if kind == "min" else v <= target)
-        trows.append([key, fmt(v), "-" if target is None else f"{'>=' if kind == 'min' else '<='} {target:g} {unit}",
-                      {True: "met", False: "MISSED", None: "-"}[met], what])
-    print(table(["key", "measured", "target", "", "what"], trows))
+        rows.append([key, fmt(v), "-" if target is None else f"{'>=' if kind == 'min' else '<='} {target:g} {unit}",
+                     {True: "met", False: "MISSED", None: "-"}[met], what])
+    print(table(["key", "measured", "target", "", "what"], rows))
     print(f"memory per km2 observed at 1 m cells: {fmt(extra['memory_MB_per_km2_square'])} MB (1 km square), "
           f"{fmt(extra['memory_MB_per_km2_strip'])} MB (10 km x 100 m strip)")
-    out = {**values, **extra,
-           "targets": {k: {"target": t, "kind": kind, "unit": u, "what": w, "measured": values[k]}
-                       for k, (t, kind, u, w) in TARGETS.items()},
-           "mode": "quick" if quick else "full", "machine": machine,
-           "loadavg_at_end": common.machine_info()["loadavg"],
-           "run_seconds": round(time.perf_counter() - t_start, 1), "section_seconds": timings,
-           "generated_unix_s": round(time.time(), 1), "details": details}
-    Path(args.out).write_text(json.dumps(out, indent=1, default=_json_default))
-    print(f"\nwrote {args.out} ({out['run_seconds']:.0f} s: " + ", ".join(f"{k} {v:g}" for k, v in timings.items()) + ")")
-    return 0
+    print(f"steady state (from 5 s after take-off): frame -> setpoint p99 {fmt(extra['frame_to_setpoint_p99_ms_steady'])} ms "
+          f"(daemon's own part, queue -> setpoint: {fmt(extra['queue_to_setpoint_p99_ms_steady'])} ms), "
+          f"jitter p99 {fmt(extra['control_jitter_p99_ms_steady'])} ms; CPU-time frames/s "
+          f"{fmt(extra['mapper_fps_50_cpu'])} @50, {fmt(extra['mapper_fps_300_cpu'])} @300")
+
+
+def _public(d: dict) -> dict:
+    return {k: v for k, v in d.items() if not k.startswith("_")}
 
 
 def _print_daemon(d: dict) -> None:
