@@ -115,6 +115,15 @@ class AvoidanceCommand:
     required_alt_m: float
     engaged: bool
     unknown_cells_ahead: int
+    holding_over_unknown: bool = False
+
+
+def known_fraction_below(grid: TerrainGrid, position_ne: np.ndarray, radius_m: float) -> float:
+    """Fraction of the cells whose centre lies within ``radius_m`` of the vehicle that hold evidence."""
+    disc = grid.corridor(position_ne, np.array([1.0, 0.0]), 0.0, radius_m)
+    inside = np.hypot(disc.north_m - position_ne[0], disc.east_m - position_ne[1]) <= radius_m
+    total = int(np.count_nonzero(inside))
+    return float(np.count_nonzero(inside & np.isfinite(disc.height_m))) / total if total else 0.0
 
 
 def fill_unknown(along_m: np.ndarray, height_m: np.ndarray, fill_m: float, cell_m: float, hover: bool) -> np.ndarray:
@@ -197,8 +206,14 @@ class PullUpLaw:
             best_w, idx, dt_i = float(w[k]), int(sel[k]), float(dt[k])
         engaged = best_w > w_nom
         cmd = min(max(max(w_nom, best_w), -cfg.max_descent_mps), cfg.max_climb_mps)
+        # Push over only into terrain the map has seen: after a building whose roof has no texture,
+        # the cells under the vehicle are unknown (not ground at zero), so hold the altitude until
+        # mapped terrain is below again (docs/avoidance.md, "Unmapped cells").
+        holding = cmd < 0.0 and known_fraction_below(grid, p[:2], radius) < cfg.descend_known_fraction
+        if holding:
+            cmd = 0.0
         if idx is None or not engaged:
-            return AvoidanceCommand(cmd, w_nom, None, math.nan, math.nan, math.nan, False, unknown_left)
+            return AvoidanceCommand(cmd, w_nom, None, math.nan, math.nan, math.nan, False, unknown_left, holding)
         h_i = float(heights[idx])
         return AvoidanceCommand(
             climb_rate_mps=cmd,
@@ -209,6 +224,7 @@ class PullUpLaw:
             required_alt_m=h_i + cfg.clearance_m - 0.5 * a * dt_i * dt_i,  # eq. 18
             engaged=True,
             unknown_cells_ahead=unknown_left,
+            holding_over_unknown=holding,
         )
 
 

@@ -181,6 +181,7 @@ class AvoidanceConfig:
     nominal_alt_m: float = _f(15.0, "m", -1e4, 1e4, "altitude to return to after an obstacle (up, local frame)")
     nominal_time_constant_s: float = _f(1.5, "s", 0.05, 60.0, "near the nominal altitude the return is exponential with this time constant")
     hover_speed_mps: float = _f(0.3, "m/s", 0.0, 10.0, "below this horizontal speed the look-ahead is a disc around the vehicle")
+    descend_known_fraction: float = _f(0.1, "", 0.0, 1.0, "descend only when at least this fraction of the cells within the miss distance below the vehicle is mapped (never push over into unseen terrain, e.g. a plain roof)")
     unknown_fill_m: float = _f(5.0, "m", 0.0, 1000.0, "an unmapped cell is taken as high as the highest mapped cell within this along-track distance in the corridor")
     enabled: bool = _f(True, doc="false = command the nominal altitude only; the law is still evaluated and published (demo --no-avoid)")
 

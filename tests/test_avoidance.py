@@ -10,6 +10,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from companion.messages import TerrainPoints
 from companion.avoidance import (
     PullUpLaw,
     height_restriction,
@@ -253,12 +254,16 @@ def test_unmapped_cells_are_not_ground_at_zero():
     for alt in (34.0, 35.0, 36.0, 38.0):
         a = law.command([4, 0.5, -alt], [5, 0, 0], holed)
         b = law.command([4, 0.5, -alt], [5, 0, 0], full)
-        assert a.climb_rate_mps == pytest.approx(b.climb_rate_mps)
         assert a.unknown_cells_ahead == 0
+        if b.climb_rate_mps >= 0:
+            assert a.climb_rate_mps == pytest.approx(b.climb_rate_mps)
+        else:  # no push-over while the terrain below is unseen (test_no_push_over_into_an_unseen_roof)
+            assert a.holding_over_unknown and a.climb_rate_mps == 0.0
     # Hovering over the hole: ground at zero there would let the vehicle sink into the plateau's
     # clearance; the law takes the highest mapped height around instead.
     assert law.command([4, 0.5, -36.0], [0, 0, 0], zero).climb_rate_mps == -CFG.max_descent_mps
-    assert law.command([4, 0.5, -36.0], [0, 0, 0], holed).climb_rate_mps == pytest.approx(-math.sqrt(2.0))
+    # Over the hole itself it does not sink at all: the terrain right below has not been seen.
+    assert law.command([4, 0.5, -36.0], [0, 0, 0], holed).climb_rate_mps == 0.0
     assert law.command([4, 0.5, -34.0], [0, 0, 0], holed).climb_rate_mps == pytest.approx(math.sqrt(2.0))
     # Beyond the fill distance from anything mapped, a cell is reported, not guessed.
     far = mapped([], ground=25.0, extent=((-30, 20), (-20, 20)))
@@ -291,3 +296,21 @@ def test_command_time(capsys):
         print("\nPullUpLaw.command, 100 m look-ahead, miss 5 m: "
               + ", ".join(f"{k} {v:.3f} ms" for k, v in times.items()))
     assert max(times.values()) < 10.0
+
+
+def test_no_push_over_into_an_unseen_roof():
+    """The paper's building: windows (mapped) on the south wall, a plain roof (never mapped). Past the
+    wall the law must not descend over the unknown roof; once mapped ground is below again it does."""
+    law = PullUpLaw(CFG)
+    grid = TerrainGrid(gate_min_count=10**6)
+    n = np.arange(-40.0, 80.0, 0.5) + 0.25
+    e = np.arange(-15.0, 15.0, 0.5) + 0.25
+    N, E = np.meshgrid(n, e, indexing="ij")
+    ground = ~((N >= 20) & (N < 40))                      # the building covers north 20..40
+    wall = (N >= 20) & (N < 21)                           # its textured south wall, mapped at 9 m
+    pts = np.column_stack([N[ground | wall], E[ground | wall], -np.where(wall, 9.0, 0.0)[ground | wall]])
+    grid.insert(TerrainPoints(0.0, pts, np.tile(np.diag([0.01, 0.01, 0.01]), (len(pts), 1, 1))))
+    over_roof = law.command([32.0, 0.0, -CFG.nominal_alt_m - 9.0], [5, 0, 0], grid)
+    assert over_roof.holding_over_unknown and over_roof.climb_rate_mps == 0.0
+    past = law.command([52.0, 0.0, -CFG.nominal_alt_m - 9.0], [5, 0, 0], grid)
+    assert not past.holding_over_unknown and past.climb_rate_mps < 0.0
