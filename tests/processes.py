@@ -96,6 +96,13 @@ class ZenohListener:
                 return last
         raise TimeoutError(f"no matching status within {timeout_s} s; last: {json.dumps(last)[:2000] if last else None}")
 
+    def latest_status(self, timeout_s: float = 5.0) -> dict:
+        """The newest status received (waits for one if none is queued)."""
+        last = self.status.get(timeout=timeout_s)
+        while not self.status.empty():
+            last = self.status.get_nowait()
+        return last
+
     def close(self) -> None:
         for s in self._subs:
             s.undeclare()
