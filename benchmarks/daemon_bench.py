@@ -21,6 +21,7 @@ from __future__ import annotations
 import bisect
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -162,18 +163,21 @@ def _wait(pred, timeout_s: float, poll_s: float = 0.1) -> bool:
 
 
 def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=print, daemon_cores: str = "1",
-                         sim_cores: str = "0", switch_interval_s: float | None = None) -> dict:
+                         sim_cores: str = "0", switch_interval_s: float | None = None,
+                         keep_samples: str | None = None, worker_policy: str = "default") -> dict:
     """Fly the circuit with the daemon mapping at ``rate_hz`` for ``duration_s`` after take-off;
     returns the daemon's control figures (and what went wrong, if anything).
 
     ``daemon_cores`` / ``sim_cores``: CPU sets ("1", "0,1", "-" = inherit) of the two processes;
     by default the daemon has one core and the simulator (which stands in for the autopilot and
     the camera's world) the other. ``switch_interval_s``: the daemon's GIL switch interval
-    (``sys.setswitchinterval``; None = Python's default, 5 ms)."""
+    (``sys.setswitchinterval``; None = Python's default, 5 ms). ``keep_samples``: copy the probe's
+    samples (JSON, :mod:`benchmarks.daemon_probe`) to this path. ``worker_policy``: "idle" or
+    "nice" lowers the mapper and render threads' priority (an experiment; see the probe)."""
     from drivers.sim.harness import MavClient, SimVehicleProcess
 
     result: dict = {"duration_s": duration_s, "camera_rate_hz": rate_hz, "error": "", "daemon_cores": daemon_cores,
-                    "sim_cores": sim_cores, "switch_interval_s": switch_interval_s}
+                    "sim_cores": sim_cores, "switch_interval_s": switch_interval_s, "worker_policy": worker_policy}
     tmp = tempfile.TemporaryDirectory(prefix="companion-bench-")
     pilot_client = MavClient.udp_listener()
     sim = SimVehicleProcess(["--flavour", "ardupilot", "--scenario", "default", "--tcp-listen", "127.0.0.1:0",
@@ -196,7 +200,8 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
         pilot.start()
         with open(daemon_log, "w") as err:
             daemon = subprocess.Popen(launcher("benchmarks.daemon_probe", daemon_cores, switch_interval_s)
-                                      + ["--config", cfg_path, "--samples", samples_path, "--log-level", "WARNING"],
+                                      + ["--config", cfg_path, "--samples", samples_path, "--log-level", "WARNING",
+                                         "--worker-policy", worker_policy],
                                       stdout=subprocess.DEVNULL, stderr=err,
                                       env=dict(os.environ, PYTHONUNBUFFERED="1"), cwd=str(REPO))
         listener = _wait_listener(f"tcp/127.0.0.1:{zenoh_port}", 20.0)
@@ -245,6 +250,9 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
             result["daemon_exit"] = daemon.returncode
             if t_air is not None:
                 result["steady_state"] = steady_state(samples_path, t_air + SETTLE_S)
+                result["t_airborne_monotonic"] = t_air
+            if keep_samples and os.path.exists(samples_path):
+                shutil.copyfile(samples_path, keep_samples)
         if listener is not None:
             listener.close()
         sim.stop()
@@ -276,7 +284,7 @@ def steady_state(samples_path: str, t_from: float) -> dict:
     logs = data["logs"]
     out: dict = {"from_s_after_takeoff": SETTLE_S, "missing": data.get("missing", [])}
     for key in ("frame_to_setpoint_ms", "jitter_ms", "step_ms"):
-        out[key] = summary([v for t, v in logs.get(key, []) if t >= t_from])
+        out[key] = summary([e[1] for e in logs.get(key, []) if e[0] >= t_from])
     put = {round(ts, 9): now for t, ts, now in logs.get("put", []) if t >= t_from}
     cap, wait, mapping = [], [], []
     for t, ts, t0, t1 in logs.get("map", []):
@@ -286,22 +294,49 @@ def steady_state(samples_path: str, t_from: float) -> dict:
         cap.append((q - ts) * 1e3)
         wait.append((t0 - q) * 1e3)
         mapping.append((t1 - t0) * 1e3)
+    # The daemon's own share of each latency sample: the sample minus the frame stamp -> queue part
+    # of its frame. The frame is found from the sample itself: its stamp is the probe's clock
+    # reading at the sample minus the latency (speed-up 1, the benchmark's), less the moment
+    # between the daemon's clock reading and the probe's (>= 0; frames are 33 ms apart).
+    stamps = np.array(sorted(put))
+    own = []
+    for t, v, now in logs.get("frame_to_setpoint_ms", []):
+        if t < t_from or not len(stamps):
+            continue
+        ts = now - v / 1e3
+        j = int(np.searchsorted(stamps, ts + 1e-6, side="right")) - 1
+        if j >= 0 and ts - stamps[j] < 0.01:
+            own.append(v - (put[stamps[j]] - stamps[j]) * 1e3)
+    out["queue_to_setpoint_ms"] = summary(own)
+    out["late_ticks"] = late_ticks(logs, t_from)
     out["parts_ms"] = {"capture_to_queue": summary(cap), "queue_wait": summary(wait), "map_step_and_insert": summary(mapping),
                        "render_in_daemon": summary([v for t, v in logs.get("render", []) if t >= t_from])}
-    # The daemon's own share of each latency sample: minus the capture -> queue part of its frame
-    # (the frame is the last one mapped before the sample was taken).
-    mapped = sorted((t, round(ts, 9)) for t, ts, _, _ in logs.get("map", []))
-    mapped_t = [t for t, _ in mapped]
-    own = []
-    for t, v in logs.get("frame_to_setpoint_ms", []):
-        i = bisect.bisect_right(mapped_t, t) - 1
-        if t >= t_from and i >= 0 and mapped[i][1] in put:
-            own.append(v - (put[mapped[i][1]] - mapped[i][1]) * 1e3)
-    out["queue_to_setpoint_ms"] = summary(own)
     if cap and out["frame_to_setpoint_ms"]["n"]:
         out["parts_ms"]["rest_to_setpoint_p50"] = out["frame_to_setpoint_ms"]["median"] - float(
             np.median(cap) + np.median(wait) + np.median(mapping))
     return out
+
+
+def late_ticks(logs: dict, t_from: float, threshold_ms: float = 3.0) -> dict:
+    """Control ticks later than ``threshold_ms`` and how many of them overlap a mapper step (the
+    tick was due at ``t - lateness``; the step ran over ``[end - duration, end]``), against the
+    chance of that: the share of the time a mapper step (widened by the mean lateness) is running."""
+    steps = sorted((t - (t1 - t0), t) for t, _, t0, t1 in logs.get("map", []) if t >= t_from)
+    late = [(t, v) for t, v, *_ in logs.get("jitter_ms", []) if t >= t_from and v > threshold_ms]
+    if not steps or not late:
+        return {"threshold_ms": threshold_ms, "n": len(late)}
+    starts = [a for a, _ in steps]
+    during = 0
+    for t, v in late:
+        due = t - v / 1e3
+        i = bisect.bisect_right(starts, t) - 1
+        if i >= 0 and steps[i][1] >= due:
+            during += 1
+    span = steps[-1][1] - steps[0][0]
+    mean_late = sum(v for _, v in late) / len(late) / 1e3
+    busy = sum(b - a + mean_late for a, b in steps) / span
+    return {"threshold_ms": threshold_ms, "n": len(late), "during_mapper_step": during,
+            "chance_fraction": round(min(1.0, busy), 3)}
 
 
 def _wait_listener(endpoint: str, timeout_s: float) -> StatusListener | None:

@@ -14,7 +14,8 @@ frame-to-setpoint latency into its parts:
 - the rest, to the setpoint: waking the event loop and the control step.
 
 It also times the synthetic camera's render (``Renderer.render``), which runs inside the daemon's
-process in simulation only.
+process in simulation only, and the map snapshots. ``--worker-policy idle|nice`` is an experiment:
+the mapper thread and the render threads at ``SCHED_IDLE`` or nice +10.
 
 Nothing in the daemon is changed; the probe replaces the daemon's sample windows with subclasses
 that also log, and wraps two of its methods on the instance.
@@ -25,7 +26,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import sys
+import threading
 import time
 
 
@@ -37,6 +40,9 @@ def main(argv=None) -> int:
     p.add_argument("--config", required=True)
     p.add_argument("--samples", required=True, help="JSON file written at exit")
     p.add_argument("--log-level", default="WARNING")
+    p.add_argument("--worker-policy", choices=("default", "idle", "nice"), default="default",
+                   help="experiment: run the mapper thread (and the synthetic camera's render threads) at "
+                        "SCHED_IDLE or nice +10, so the event loop's wake-ups preempt them at once")
     args = p.parse_args(argv)
     setup_logging(args.log_level)
     try:
@@ -45,8 +51,11 @@ def main(argv=None) -> int:
         print(f"configuration: {exc}", file=sys.stderr)
         return 2
 
+    clock = daemon.clock
+
     class Logged(Percentiles):
-        """The daemon's window (unchanged for its status) that also logs (monotonic time, value)."""
+        """The daemon's window (unchanged for its status) that also logs (monotonic time, value,
+        companion clock time)."""
 
         def __init__(self, log: list):
             super().__init__()
@@ -54,9 +63,9 @@ def main(argv=None) -> int:
 
         def add(self, v: float) -> None:
             super().add(v)
-            self.log.append((time.monotonic(), v))
+            self.log.append((time.monotonic(), v, clock.now()))
 
-    logs: dict[str, list] = {"frame_to_setpoint_ms": [], "jitter_ms": [], "step_ms": [], "put": [], "map": [], "render": []}
+    logs: dict[str, list] = {"frame_to_setpoint_ms": [], "jitter_ms": [], "step_ms": [], "put": [], "map": [], "render": [], "snapshot": [], "control_step": []}
     missing = []
     for attr, key in (("frame_to_setpoint_ms", "frame_to_setpoint_ms"), ("control_jitter_ms", "jitter_ms"),
                       ("step_ms", "step_ms")):
@@ -64,7 +73,6 @@ def main(argv=None) -> int:
             setattr(daemon, attr, Logged(logs[key]))
         else:
             missing.append(attr)
-    clock = daemon.clock
     frames = getattr(daemon, "frames", None)
     if frames is not None and hasattr(frames, "put"):
         put = frames.put
@@ -83,12 +91,54 @@ def main(argv=None) -> int:
             logs["map"].append((time.monotonic(), frame.t_s, t0, clock.now()))
 
         daemon._map_frame = logged_map
+    def lower_priority() -> None:
+        """Lower the calling thread's scheduling priority (Linux: policies and nice are per thread)."""
+        if args.worker_policy == "idle":
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        elif args.worker_policy == "nice":
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+
+    if args.worker_policy != "default" and hasattr(daemon, "_mapper_worker"):
+        worker = daemon._mapper_worker
+
+        def low_priority_worker():
+            lower_priority()
+            worker()
+
+        daemon._mapper_worker = low_priority_worker
+    lowered: set[int] = set()
+    if hasattr(daemon, "control_step"):
+        control_step = daemon.control_step
+
+        def logged_control(now):
+            t0 = time.perf_counter()
+            try:
+                return control_step(now)
+            finally:
+                logs["control_step"].append((time.monotonic(), (time.perf_counter() - t0) * 1e3))
+
+        daemon.control_step = logged_control
+
+    if hasattr(daemon, "save_snapshot"):
+        save = daemon.save_snapshot
+
+        def logged_save():
+            t0 = time.perf_counter()
+            try:
+                return save()
+            finally:
+                logs["snapshot"].append((time.monotonic(), (time.perf_counter() - t0) * 1e3))
+
+        daemon.save_snapshot = logged_save
     try:  # the synthetic camera's render runs in this process (a real camera's work would not)
         from drivers.sim.renderer import Renderer
 
         render = Renderer.render
 
         def logged_render(self, *a, **k):
+            if args.worker_policy != "default" and threading.get_native_id() not in lowered:
+                lower_priority()
+                lowered.add(threading.get_native_id())
             t0 = time.perf_counter()
             try:
                 return render(self, *a, **k)

@@ -98,7 +98,7 @@ class RunSpec:
     @property
     def label(self) -> str:
         p = "inv-depth" if self.parameterisation == "inverse_depth" else "cartesian"
-        return f"{p} nav {'on' if self.nav_error else 'off'}"
+        return f"{p} nav {'on' if self.nav_error else 'off'} s{self.seed}"
 
 
 @dataclass
@@ -149,6 +149,7 @@ class RunResult:
     inserted: int = 0
     rejected_outlier: int = 0
     max_alt_m: float = 0.0
+    oracle: TerrainGrid | None = None  # the same points moved to where navigation error alone puts them
 
 
 class _Link:
@@ -248,6 +249,7 @@ def fly(spec: RunSpec) -> RunResult:
     world, renderer = world_and_renderer(cfg)
     camera, mount = camera_from_config(cfg.camera)
     grid = TerrainGrid.from_config(cfg.terrain)
+    oracle = TerrainGrid.from_config(cfg.terrain)
     detector = _Recorder(HarrisDetector(cfg.mapper, camera.width, camera.height, cfg.camera.border_px))
 
     def depth_prior(origin, rays):
@@ -298,8 +300,9 @@ def fly(spec: RunSpec) -> RunResult:
         if t >= next_ekf:
             feed((mav.MAVLINK_MSG_ID_EKF_STATUS_REPORT,))
             next_ekf += 1.0 / EKF_MSG_RATE_HZ
-        truth = ap.truth()
-        alt = -truth["p"][2]
+        alt = -ap.vehicle.p[2]
+        if t >= next_control or t >= next_frame:
+            truth = ap.truth()
         max_alt = max(max_alt, alt)
         if climbing and alt >= spec.altitude_m - 0.3:
             climbing = False
@@ -337,8 +340,12 @@ def fly(spec: RunSpec) -> RunResult:
                 stats = grid.insert(step.points)
                 inserted += stats.inserted
                 rejected += stats.rejected_outlier
+                k = len(step.points)
+                if k and len(log.nav_frame) >= k and log.ids[-k:] == step.points.feature_ids.tolist():
+                    oracle.insert(TerrainPoints(step.points.t_s, np.asarray(log.nav_frame[-k:]), step.points.covariances,
+                                                step.points.feature_ids))
     return RunResult(spec, grid, world, log, np.asarray(traj), frames, time.perf_counter() - t_wall, guidance.lap,
-                     inserted, rejected, max_alt)
+                     inserted, rejected, max_alt, oracle)
 
 
 def _leg_fraction(guidance: WaypointGuidance, p_ne: np.ndarray) -> float:
@@ -483,6 +490,23 @@ def map_figures(grid: TerrainGrid, world: World, building: str = "building") -> 
     return out
 
 
+def versus_oracle(grid: TerrainGrid, oracle: TerrainGrid, world: World) -> dict[str, float]:
+    """The map against the oracle map (the same points placed where navigation error alone puts them):
+    what the mapper adds to the navigation error. Over the flat-ground cells both hold (near a wall
+    a point and its oracle fall on either side of a cell border): rmse, fraction > 2 m."""
+    a = grid_cells(grid)
+    b = grid_cells(oracle)
+    ka = a[0].astype(np.int64) * (1 << 32) + a[1]
+    kb = b[0].astype(np.int64) * (1 << 32) + b[1]
+    _, ia, ib = np.intersect1d(ka, kb, return_indices=True)
+    c = grid.cell_size_m
+    flat = _neighbourhood(world, (a[0][ia] + 0.5) * c, (a[1][ia] + 0.5) * c, c, False, np.maximum) <= 1e-6
+    d = (a[2][ia] - b[2][ib])[flat]
+    if len(d) == 0:
+        return {"rmse": math.nan, "spurious": math.nan}
+    return {"rmse": float(np.sqrt(np.mean(d * d))), "spurious": float(np.mean(np.abs(d) > SPURIOUS_M))}
+
+
 def _inside_polygon(x: np.ndarray, y: np.ndarray, poly: np.ndarray) -> np.ndarray:
     """(K,) points strictly inside a convex or simple polygon (even-odd rule)."""
     inside = np.zeros(len(x), bool)
@@ -534,14 +558,18 @@ def classify_points(log: PointLog) -> dict[str, float]:
 
 def table(results: list[RunResult]) -> str:
     rows = [("run", "laps", "frames", "s", "cells", "rmse_flat", "bias_flat", "spur%", "spur_hi%", "max_err",
-             "bldg max/p95", "max_alt", "pts", "bad%", "occl/mism/nav/far/oth %")]
+             "oracle rmse/spur%", "vs-oracle rmse/spur%", "bldg max/p95", "max_alt", "pts", "bad%", "occl/mism/nav/far/oth %")]
     for r in results:
         f = map_figures(r.grid, r.world)
+        o = map_figures(r.oracle, r.world) if r.oracle is not None and len(r.oracle) else None
         c = classify_points(r.points)
         rows.append((
             r.spec.label, f"{r.laps}", f"{r.frames}", f"{r.wall_s:.1f}", f"{f['cells']:.0f}",
             f"{f['rmse_flat']:.2f}", f"{f['bias_flat']:+.2f}", f"{100 * f['spurious']:.2f}",
             f"{100 * f['spurious_high']:.2f}", f"{f['max_err']:.1f}",
+            "-" if o is None else f"{o['rmse_flat']:.2f}/{100 * o['spurious']:.2f}",
+            "-" if o is None else "{rmse:.2f}/{spurious:.2f}".format(**{
+                k: v * (100 if k == "spurious" else 1) for k, v in versus_oracle(r.grid, r.oracle, r.world).items()}),
             f"{f['building_max']:.1f}/{f['building_p95']:.1f}", f"{r.max_alt_m:.1f}", f"{c['points']}",
             f"{100 * c.get('bad', 0):.1f}",
             "/".join(f"{100 * c.get(k, 0):.1f}" for k in ("occlusion", "mismatch", "nav", "far", "other")),
@@ -556,7 +584,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--param", choices=["inverse_depth", "cartesian", "both"], default="both")
     ap.add_argument("--nav", choices=["on", "off", "both"], default="both")
     ap.add_argument("--no-avoid", action="store_true", help="hold the altitude instead of the pull-up law")
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1], help="one run per seed (navigation error, sensor noise)")
     ap.add_argument("--worst", action="store_true", help="print the worst cells of each run")
     args = ap.parse_args(argv)
     params = ["inverse_depth", "cartesian"] if args.param == "both" else [args.param]
@@ -564,11 +592,13 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for p in params:
         for nv in navs:
-            r = fly(RunSpec(parameterisation=p, nav_error=nv, laps=args.laps, avoid=not args.no_avoid, seed=args.seed))
-            results.append(r)
-            if args.worst:
-                f = map_figures(r.grid, r.world)
-                print(r.spec.label, "worst cells (n, e, h, err, count):", [tuple(round(x, 1) for x in w) for w in f["worst"]])
+            for seed in args.seeds:
+                r = fly(RunSpec(parameterisation=p, nav_error=nv, laps=args.laps, avoid=not args.no_avoid, seed=seed))
+                results.append(r)
+                if args.worst:
+                    f = map_figures(r.grid, r.world)
+                    print(r.spec.label, seed, "worst cells (n, e, h, err, count):",
+                          [tuple(round(x, 1) for x in w) for w in f["worst"]])
     print(table(results))
     return 0
 

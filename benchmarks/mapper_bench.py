@@ -210,6 +210,9 @@ DETECTOR_SECTIONS = [
 ]
 MAPPER_FUNCTIONS = [
     ("check_nav (x2: step and step_measurements)", "check_nav"),
+    ("appearance: patch descriptors", "patch_descriptors"),
+    ("appearance: correlation N x M", "correlation"),
+    ("navigation drift (process noise)", "navigation_drift"),
     ("match: innovation covariance S (eq. 10)", "innovation_covariance"),
     ("match: Mahalanobis distances N x M (eqs. 11-12)", "mahalanobis_distances"),
     ("match: gate and mutual nearest", "gate_and_match"),
@@ -218,11 +221,15 @@ MAPPER_FUNCTIONS = [
     ("init: depth prior", "prior_ranges"),
 ]
 MODEL_FUNCTIONS = [
+    ("navigation drift (process noise)", "navigation_frame_jacobian"),
     ("predict: measurement model (eqs. 3-4)", "measurement_model"),
     ("match: Jacobians (eq. 5)", "measurement_jacobian"),
     ("init: initialise features (eqs. 13-17)", "initialise_features"),
-    ("converge: relative depth sigma", "relative_depth_sigma"),
+    ("converge: relative depth sigma and depth", "relative_depth_sigma"),
+    ("converge: relative depth sigma and depth", "depth_from_origin"),
 ]
+# Called by Mapper.step outside step_measurements (with the detector).
+OUTSIDE_MEASUREMENTS = ("appearance: patch descriptors",)
 
 
 def section_profile(flight: Flight, n_features: int, frames: int) -> dict:
@@ -258,13 +265,14 @@ def section_profile(flight: Flight, n_features: int, frames: int) -> dict:
     detector = per.pop("_detector", 0.0)
     measurements = per.pop("_measurements", 0.0)
     step = wall / n * 1e3
+    check_nav_once = 0.5 * per.get(MAPPER_FUNCTIONS[0][0], 0.0)  # one call in step, one in step_measurements
+    outside = check_nav_once + sum(per.get(k, 0.0) for k in OUTSIDE_MEASUREMENTS)
     det_parts = sum(v for k, v in per.items() if k.startswith("detect:"))
-    # check_nav runs once inside step_measurements and once before detection
-    meas_parts = sum(v for k, v in per.items() if not k.startswith("detect:")) - 0.5 * per.get(MAPPER_FUNCTIONS[0][0], 0.0)
+    meas_parts = sum(v for k, v in per.items() if not k.startswith("detect:")) - outside
     rows = dict(per)
     rows["detect: selection (greedy distance, bins, max) and glue"] = detector - det_parts
     rows["step bookkeeping (database, masks, emission glue)"] = measurements - meas_parts
-    rows["step: undistort, image checks, the rest"] = step - detector - measurements - 0.5 * per.get(MAPPER_FUNCTIONS[0][0], 0.0)
+    rows["step: undistort, image checks, the rest"] = step - detector - measurements - outside
     return {"n_features": n_features, "frames": n, "step_ms_mean": step, "sections_ms": rows,
             "calls": dict(timer.calls), "not_found": missing}
 

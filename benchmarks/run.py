@@ -10,13 +10,31 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks import common, daemon_bench, map_bench, mapper_bench
-from benchmarks.common import fmt, table
+
+def _pin_before_numpy() -> str:
+    """Pin this process to core 0 before NumPy loads OpenBLAS. Pinned after the import, OpenBLAS
+    keeps the two threads it started for two cores, which then spin against each other on one
+    (measured: a (300, 81) @ (81, 470) float32 product, the mapper's appearance correlation,
+    0.26 ms -> 0.62 ms median and 19 ms p99)."""
+    if "numpy" in sys.modules:
+        return "after NumPy was loaded (BLAS may run two threads on one core)"
+    try:
+        os.sched_setaffinity(0, {0})
+    except (AttributeError, OSError) as exc:
+        return f"not pinned ({exc})"
+    return "before NumPy was loaded"
+
+
+PINNING = _pin_before_numpy()
+
+from benchmarks import common, daemon_bench, map_bench, mapper_bench  # noqa: E402 - NumPy after pinning
+from benchmarks.common import fmt, table  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results.json"
 
@@ -68,8 +86,9 @@ def parse_args(argv):
     p.add_argument("--out", default=str(RESULTS), help="results file (default benchmarks/results.json)")
     p.add_argument("--no-daemon", action="store_true", help="skip the daemon run (simulator + companion run)")
     p.add_argument("--daemon-seconds", type=float, help="daemon run length after take-off (default 40, quick 8)")
-    p.add_argument("--gil-experiment", action="store_true",
-                   help="also run the daemon with sys.setswitchinterval(0.001) (evidence for a proposal)")
+    p.add_argument("--daemon-experiments", action="store_true",
+                   help="also run the daemon with sys.setswitchinterval(0.001) and with its mapper and render "
+                        "threads at SCHED_IDLE (does either cut the control jitter?)")
     p.add_argument("--profile", action="store_true", help="also print cProfile's top functions of the mapper step")
     return p.parse_args(argv)
 
@@ -82,8 +101,9 @@ def main(argv=None) -> int:
     machine = common.machine_info()
     print(f"companion benchmarks ({'quick' if plan.quick else 'full'}): {machine['cpu']}, {machine['cpus']} CPUs, "
           f"Python {machine['python']}, NumPy {machine['numpy']}, OpenCV {machine['opencv']}")
-    print(f"single-core figures on core 0 (pinned: {pinned}), cv2 threads {machine['opencv_threads']}, "
+    print(f"single-core figures on core 0 (pinned: {pinned}, {PINNING}), cv2 threads {machine['opencv_threads']}, "
           f"load average {machine['loadavg']}")
+    machine["pinning"] = PINNING
     timings: dict[str, float] = {}
     details: dict = {}
     last = time.perf_counter()
@@ -250,10 +270,13 @@ def daemon_section(plan: Plan, args) -> dict:
           "daemon on core 1, simulator on core 0) ==")
     out = {"default": daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print)}
     _print_daemon(out["default"])
-    if args.gil_experiment:
+    if args.daemon_experiments:
         print("\n  again with the daemon's GIL switch interval at 1 ms (sys.setswitchinterval(0.001)):")
         out["switch_interval_1ms"] = daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print, switch_interval_s=0.001)
         _print_daemon(out["switch_interval_1ms"])
+        print("\n  again with the mapper and render threads at SCHED_IDLE:")
+        out["idle_workers"] = daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print, worker_policy="idle")
+        _print_daemon(out["idle_workers"])
     return out
 
 
@@ -345,6 +368,10 @@ def _print_daemon(d: dict) -> None:
             rows.append([name, str(v.get("n")), v.get("median"), v.get("p99"), v.get("mean")])
         print(f"  steady state (samples from {ss.get('from_s_after_takeoff'):g} s after take-off, the daemon's own samples):")
         print(table(["figure", "n", "median ms", "p99 ms", "mean ms"], rows))
+        lt = ss.get("late_ticks") or {}
+        if lt.get("during_mapper_step") is not None:
+            print(f"  control ticks later than {lt['threshold_ms']:g} ms: {lt['n']}, of which {lt['during_mapper_step']} "
+                  f"while the mapper thread was stepping (chance alone: {100 * lt['chance_fraction']:.0f} %)")
     print(f"  frames {d.get('frames_in')} in, {d.get('frames_mapped')} mapped, {d.get('queue_dropped')} dropped by the "
           f"queue; {d.get('points_converged')} points converged; command state: {d.get('command')}")
 

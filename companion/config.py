@@ -161,6 +161,7 @@ class TerrainConfig:
     spread_sigma: float = _f(2.0, "sigma", 0.5, 5.0, "a point's horizontal covariance spreads it over the cells within this many sigma")
     max_spread_cells: int = _f(3, "cells", 0, 16, "largest spread radius around a point's own cell")
     min_height_sigma_m: float = _f(0.05, "m", 1e-4, 100.0, "floor on a point's height sigma (no point is exact)")
+    max_horizontal_sigma_m: float = _f(2.0, "m", 0.01, 1e4, "a point whose horizontal sigma (largest axis) exceeds this cannot say which cell it is in: rejected")
     gate_sigma: float = _f(3.0, "sigma", 0.5, 100.0, "a point further than this from a cell's estimate (innovation sigma) is rejected there")
     gate_min_count: int = _f(2, "points", 1, 1_000_000, "the gate applies once a cell holds this much evidence")
     reset_evidence: float = _f(3.0, "points", 0.1, 1e6, "rejected evidence, uncontradicted, after which a cell takes the new height")

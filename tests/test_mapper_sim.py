@@ -127,6 +127,9 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
     its first measurement to the first converged estimate of a correctly associated feature on it
     (inf if never): the time the mapper needs to put that point on the map.
     """
+    # The navigation errors here are drawn independently every frame from P_x: the paper's model
+    # (nav_attitude_correlation_s = 0), not the correlated drift the default assumes.
+    overrides = {"nav_attitude_correlation_s": 0.0} | overrides
     cfg = dataclasses.replace(MapperConfig(), parameterisation=parameterisation, pixel_sigma_px=PIXEL_SIGMA, **overrides)
     mapper = Mapper(cfg, CAMERA, MOUNT, default_ground_alt_m=0.0)
     truth_of: dict[int, int] = {}
@@ -316,7 +319,10 @@ def report() -> str:
 def test_inverse_depth_maps_the_scene_accurately_and_consistently():
     print("\n" + report())
     f = figures(monte_carlo()["inverse_depth"])
-    assert f["mapped_ground"] > 0.9
+    # A point goes on the map once its depth sigma is below converged_max_depth_sigma_m (0.5 m) as
+    # well as 10 % of its depth: ground points first seen 30+ m ahead often leave the view before
+    # (measured 69 %; 90+ % with the 10 % rule alone, whose far points were metres off).
+    assert f["mapped_ground"] > 0.6
     assert f["mapped_block"] > 0.75
     assert f["depth_err_ground_median"] < 0.5
     assert f["depth_err_block_median"] < 0.5

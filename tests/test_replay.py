@@ -25,8 +25,11 @@ from companion.replay import build_mapper, load_reference, run_replay
 from companion.terrain.grid import TerrainGrid
 
 # Region of the flight's map, and the accuracy the mapper reaches on it today (measured: median
-# |error| ~0.1 m, 90-95 % of cells within 1 m; the RMSE is dominated by a few misassociated
-# far features, so it is printed, not asserted tightly).
+# |error| ~0.02 m, RMSE ~0.07 m, 100 % of cells within 1 m). Since the mapper emits a point only
+# when its depth sigma is below mapper.converged_max_depth_sigma_m (0.5 m; docs/mapper.md, "Map
+# quality in the simulated flight"), this 6 s flight maps ~135 cells instead of 300+ of which the
+# far, imprecise ones were metres off: the coverage bound follows.
+MIN_CELLS = 100
 NORTH, EAST = (-20.0, 140.0), (-60.0, 60.0)
 MEDIAN_ABS_MAX_M = 0.3
 WITHIN_1M_MIN = 0.8
@@ -43,7 +46,7 @@ def print_figures(name: str, metrics: dict) -> None:
 
 def assert_close_to_truth(metrics: dict) -> None:
     ref = metrics["reference"]
-    assert ref["cells_compared"] == metrics["cells_mapped"] > 300
+    assert ref["cells_compared"] == metrics["cells_mapped"] > MIN_CELLS
     assert ref["median_abs_m"] < MEDIAN_ABS_MAX_M, ref
     assert ref["within_1m"] > WITHIN_1M_MIN, ref
 
@@ -105,7 +108,7 @@ def test_reference_bias_and_rmse_follow_a_shifted_reference_exactly(data, tmp_pa
     base = reference_metrics(grid, pts[:, 0], pts[:, 1], pts[:, 2])
     for shift in (+1.0, -2.5):
         m = reference_metrics(grid, pts[:, 0], pts[:, 1], pts[:, 2] + shift)
-        assert m["cells_compared"] == base["cells_compared"] > 300
+        assert m["cells_compared"] == base["cells_compared"] > MIN_CELLS
         assert math.isclose(m["bias_m"], base["bias_m"] - shift, abs_tol=1e-9)
         # mean((e - s)^2) = rmse^2 - 2 s bias + s^2
         assert math.isclose(m["rmse_m"] ** 2, base["rmse_m"] ** 2 - 2 * shift * base["bias_m"] + shift**2, rel_tol=1e-9)
@@ -146,7 +149,7 @@ def test_own_recording_and_its_tum_export_replay_to_the_same_map(data, tmp_path)
     print_figures("own recording", a.metrics)
     print_figures("its TUM export", b.metrics)
     ca, cb = map_cells(a.grid), map_cells(b.grid)
-    assert np.array_equal(ca.keys, cb.keys) and len(ca) > 300
+    assert np.array_equal(ca.keys, cb.keys) and len(ca) > MIN_CELLS
     diff = float(np.max(np.abs(ca.height - cb.height)))
     print(f"own vs export: {len(ca)} cells, max |height difference| {diff:.2e} m")
     assert diff < SAME_MAP_TOL_M
@@ -168,7 +171,7 @@ def test_broken_frames_and_pose_lines_are_counted_and_the_replay_continues(tmp_p
     assert m["recording"]["bad_lines"] == {"poses.txt": 1, "images.txt": 1}
     assert m["frames_listed"] == 30 and m["frames_unreadable"] == 2 and m["frames_processed"] == 28
     assert sum(m["image_problems"].values()) == 2
-    assert m["cells_mapped"] > 100 and m["converged_points"] > 0
+    assert m["cells_mapped"] > MIN_CELLS // 3 and m["converged_points"] > 0
     assert any("images.txt: line" in p for p in m["recording"]["problems"])
 
 

@@ -23,7 +23,7 @@ from types import ModuleType
 import numpy as np
 
 from companion.config import MapperConfig
-from companion.geometry import CameraMount, PinholeCamera
+from companion.geometry import CameraMount, PinholeCamera, skew
 from companion.mapper import cartesian, inverse_depth
 from companion.mapper.appearance import correlation, patch_descriptors
 from companion.mapper.database import FeatureDatabase
@@ -134,7 +134,9 @@ def _nearest_psd(M: np.ndarray) -> np.ndarray:
     return (V * np.maximum(w, 0.0)) @ V.T
 
 
-def navigation_drift(covariance: np.ndarray, dt_s: float, attitude_correlation_s: float) -> np.ndarray | None:
+def navigation_drift(
+    covariance: np.ndarray, dt_s: float, attitude_correlation_s: float, velocity_ned_mps: np.ndarray | None = None
+) -> np.ndarray | None:
     """Covariance (6, 6) of the change of the navigation error over ``dt_s`` (docs/mapper.md,
     "Correlated navigation error"), from the 9x9 ``NavState.covariance``:
 
@@ -142,7 +144,11 @@ def navigation_drift(covariance: np.ndarray, dt_s: float, attitude_correlation_s
       position is integrated from its velocity between fixes), so it changes by
       ``P_vel dt^2`` in ``dt``;
     * attitude: a first-order Gauss-Markov error with stationary covariance ``P_att`` and correlation
-      time ``tau`` changes by ``(1 - exp(-2 dt / tau)) P_att`` (the part of ``e(t + dt)`` that is new).
+      time ``tau`` changes by ``(1 - exp(-2 dt / tau)) P_att`` (the part of ``e(t + dt)`` that is new);
+    * and even a constant attitude error moves the estimate's frame while the vehicle travels: the
+      world seen from the estimate is rotated about the vehicle (``X' = Exp(-dtheta) (X - p) + p``),
+      so a displacement ``d = v dt`` shifts every point by ``[dtheta]x d``: ``[d]x P_att [d]x^T`` is
+      added to the position block (``v`` = ``velocity_ned_mps``, (3,)).
 
     None when ``dt_s`` is not positive (first step, time going back).
     """
@@ -150,7 +156,11 @@ def navigation_drift(covariance: np.ndarray, dt_s: float, attitude_correlation_s
         return None
     q = np.zeros((6, 6))
     q[0:3, 0:3] = _nearest_psd(covariance[3:6, 3:6]) * dt_s * dt_s
-    q[3:6, 3:6] = -np.expm1(-2.0 * dt_s / attitude_correlation_s) * covariance[6:9, 6:9]
+    P_att = covariance[6:9, 6:9]
+    q[3:6, 3:6] = -np.expm1(-2.0 * dt_s / attitude_correlation_s) * P_att
+    if velocity_ned_mps is not None:
+        D = skew(np.asarray(velocity_ned_mps, dtype=float).reshape(3) * dt_s)
+        q[0:3, 0:3] += D @ P_att @ D.T
     return 0.5 * (q + q.T)
 
 
@@ -219,6 +229,8 @@ class Mapper:
         self._detector = None
         self._detector_shape: tuple[int, ...] | None = None
         self._last_nav_t = np.inf  # time of the last accepted step (no drift before the first)
+        self._emit_P_x: np.ndarray | None = None  # this step's P_x and body position, for emission
+        self._emit_p = np.zeros(3)
 
     # ------------------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -282,6 +294,7 @@ class Mapper:
         P_x = nav.pose_covariance
         P_x = 0.5 * (P_x + P_x.T)
         pose = CameraPose.from_body(nav.position_ned_m, nav.R_nb, self.mount)
+        self._emit_P_x, self._emit_p = P_x, pose.p
 
         valid = np.isfinite(uv).all(axis=1) & self.camera.in_image(uv)
         meas_index = np.flatnonzero(valid)  # positions in the caller's array
@@ -305,7 +318,7 @@ class Mapper:
         if cfg.nav_attitude_correlation_s > 0:
             P_meas = np.zeros_like(P_x)
             cov = np.asarray(nav.covariance, dtype=float)
-            q = navigation_drift(cov, nav.t_s - self._last_nav_t, cfg.nav_attitude_correlation_s)
+            q = navigation_drift(cov, nav.t_s - self._last_nav_t, cfg.nav_attitude_correlation_s, nav.velocity_ned_mps)
             if len(slots) and q is not None:
                 J = model.navigation_frame_jacobian(db.y[slots], db.R_ref[slots], pose.p)
                 Q = J @ q @ np.swapaxes(J, 1, 2)
@@ -357,6 +370,8 @@ class Mapper:
         db.remove(dropped)
         n_removed += len(dropped)
         updated = updated[~inconsistent]
+        updated_meas = match_idx[ok][~inconsistent]  # measurement of each kept update
+        slots = np.setdiff1d(slots, dropped, assume_unique=True)
 
         # Confidence index: +1 matched, -1 visible but not matched (or refused).
         unmatched = np.setdiff1d(slots, updated, assume_unique=True)
@@ -427,7 +442,7 @@ class Mapper:
             n_inconsistent=len(dropped),
             init_index=init_index,
             matched_ids=db.ids[updated].copy(),
-            matched_measurements=meas_index[match_idx[ok]].astype(np.int64),
+            matched_measurements=meas_index[updated_meas].astype(np.int64),
             initialised_ids=new_ids,
             initialised_measurements=meas_index[chosen].astype(np.int64),
             removed_ids=np.concatenate(removed_ids),
@@ -441,9 +456,21 @@ class Mapper:
         return X, 0.5 * (cov + np.swapaxes(cov, 1, 2))
 
     def _emitted_points(self, t_s: float, slots: np.ndarray) -> TerrainPoints:
+        """Converged features as terrain points. With the correlated navigation model the feature
+        covariance is relative to the estimate's frame; the point's covariance in the world adds
+        the height variance of the navigation error, ``(J_X P_x J_X^T)_zz`` with ``J_X = [I, -[X - p]x]``
+        (the point moves with the frame, as in eq. 17), so the map knows that the heights of one pass
+        share that error and fuses passes instead of flipping between them. Horizontally the
+        navigation error shifts a whole pass rigidly: spreading each point over the cells of that
+        shift would blur what is sharp in the map (a wall's edge), so it is not added there."""
         if len(slots) == 0:
             return TerrainPoints.empty(t_s)
         X, cov = self._points(slots)
+        if self.cfg.nav_attitude_correlation_s > 0 and self._emit_P_x is not None:
+            J = np.concatenate([np.broadcast_to(np.eye(3), (len(X), 3, 3)), -skew(X - self._emit_p)], axis=2)
+            J_z = J[:, 2, :]  # (K, 6): height row
+            cov = cov.copy()
+            cov[:, 2, 2] += np.einsum("ki,ij,kj->k", J_z, self._emit_P_x, J_z)
         finite = np.isfinite(X).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
         return TerrainPoints(t_s, X[finite], cov[finite], self.db.ids[slots][finite].copy())
 

@@ -5,7 +5,8 @@ Here each cell holds a Gaussian estimate of its height (value, variance) and an 
 and a point updates it with a one-dimensional Kalman update, so the cell moves both up and down.
 The steps, in the order the grid applies them to a batch of N points:
 
-1. :func:`valid_points` rejects non-finite or non-PSD input (counted, never fused).
+1. :func:`valid_points` rejects non-finite or non-PSD input (counted, never fused);
+   :func:`precise_points` rejects points too imprecise horizontally to belong to any cell.
 2. :func:`horizontal_spread` turns each point into (point, cell, weight) pairs: the point's
    horizontal covariance says which cells it may fall in; weight = its share of the point.
 3. :func:`measurement_variance`: a pair is a measurement of the cell's height with variance
@@ -47,6 +48,17 @@ def valid_points(positions: np.ndarray, covariances: np.ndarray, max_abs_m: floa
         ok &= (a * d - b * b >= -tol2) & (a * g - c * c >= -tol2) & (m_de >= -tol2)
         ok &= a * m_de - b * (b * g - e * c) + c * (b * e - d * c) >= -tol2 * scale
     return ok
+
+
+def precise_points(covariances: np.ndarray, max_sigma_m: float) -> np.ndarray:
+    """(N,) bool: the largest horizontal standard deviation (major axis of the 2x2 north-east block of
+    ``covariances`` (N, 3, 3)) is at most ``max_sigma_m``. A point less precise than that says
+    little about any one cell, and the spread (limited to ``max_spread_cells``) would put all of its
+    weight into the few cells it reaches: a far feature with a 16 m sigma becomes a full point in
+    cells it is probably not in. Closed-form eigenvalue of a symmetric 2x2."""
+    a, b, d = covariances[:, 0, 0], covariances[:, 0, 1], covariances[:, 1, 1]
+    major = 0.5 * (a + d) + np.sqrt(0.25 * (a - d) ** 2 + b * b)
+    return major <= max_sigma_m * max_sigma_m
 
 
 def horizontal_spread(

@@ -42,6 +42,7 @@ class InsertStats:
     inserted: int = 0
     rejected_invalid: int = 0
     rejected_outlier: int = 0
+    rejected_imprecise: int = 0
     cells_touched: int = 0
     cells_reset: int = 0
 
@@ -88,6 +89,7 @@ class TerrainGrid:
         spread_sigma: float = 2.0,
         max_spread_cells: int = 3,
         min_height_sigma_m: float = 0.05,
+        max_horizontal_sigma_m: float = 2.0,
         gate_sigma: float = 3.0,
         gate_min_count: int = 2,
         reset_evidence: float = 3.0,
@@ -105,6 +107,7 @@ class TerrainGrid:
         self.spread_sigma = float(spread_sigma)
         self.max_spread_cells = int(max_spread_cells)
         self.min_height_sigma_m = float(min_height_sigma_m)
+        self.max_horizontal_sigma_m = float(max_horizontal_sigma_m)
         self.gate_sigma = float(gate_sigma)
         self.gate_min_count = int(gate_min_count)
         self.reset_evidence = float(reset_evidence)
@@ -130,6 +133,7 @@ class TerrainGrid:
             spread_sigma=cfg.spread_sigma,
             max_spread_cells=cfg.max_spread_cells,
             min_height_sigma_m=cfg.min_height_sigma_m,
+            max_horizontal_sigma_m=cfg.max_horizontal_sigma_m,
             gate_sigma=cfg.gate_sigma,
             gate_min_count=cfg.gate_min_count,
             reset_evidence=cfg.reset_evidence,
@@ -206,7 +210,8 @@ class TerrainGrid:
 
     def insert(self, points: TerrainPoints) -> InsertStats:
         """Fuse a batch of converged points (docs/terrain.md, "Fusion"). Invalid points are counted
-        in ``rejected_invalid``; points the gate refused in every cell they touch in
+        in ``rejected_invalid``; points whose horizontal sigma exceeds ``max_horizontal_sigma_m`` in
+        ``rejected_imprecise``; points the gate refused in every cell they touch in
         ``rejected_outlier``. A malformed message (wrong shapes) raises ValueError."""
         pos = np.asarray(points.positions_ned_m, dtype=np.float64)
         cov = np.asarray(points.covariances, dtype=np.float64)
@@ -216,10 +221,13 @@ class TerrainGrid:
             raise ValueError(f"TerrainPoints.covariances must be ({len(pos)}, 3, 3), got {cov.shape}")
         ok = fusion.valid_points(pos, cov, self.max_abs_coordinate_m)
         n_invalid = int(len(pos) - np.count_nonzero(ok))
-        if not ok.all():
-            pos, cov = pos[ok], cov[ok]
+        precise = ok.copy()
+        precise[ok] = fusion.precise_points(cov[ok], self.max_horizontal_sigma_m)
+        n_imprecise = int(np.count_nonzero(ok & ~precise))
+        if not precise.all():
+            pos, cov = pos[precise], cov[precise]
         if len(pos) == 0:
-            return InsertStats(rejected_invalid=n_invalid)
+            return InsertStats(rejected_invalid=n_invalid, rejected_imprecise=n_imprecise)
 
         c, t2 = self.cell_size_m, self._cells_per_tile
         height = -pos[:, 2]
@@ -297,6 +305,7 @@ class TerrainGrid:
             inserted=n_used,
             rejected_invalid=n_invalid,
             rejected_outlier=int(len(pos) - n_used),
+            rejected_imprecise=n_imprecise,
             cells_touched=int(np.count_nonzero(update)),
             cells_reset=int(np.count_nonzero(reset)),
         )

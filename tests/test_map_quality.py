@@ -1,0 +1,274 @@
+"""Map quality: the mapper and the terrain grid in the simulated flight, and the rules that make it
+right (docs/mapper.md, "Map quality in the simulated flight"; docs/terrain.md, "Fusion").
+
+The flight tests run a short version of ``benchmarks/map_quality.py``: take off at the first
+waypoint of the default scenario and fly the first leg over the 12 m building (textured to 9 m)
+with the pull-up law on the map being built, once with a perfect navigation estimate and once
+with the simulator's default navigation error and the covariance the service builds from the
+ArduPilot messages. Run with ``-s`` to print the table.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.map_quality import RunSpec, classify_points, fly, map_figures, table, versus_oracle  # noqa: E402
+from companion.config import MapperConfig  # noqa: E402
+from companion.geometry import CameraMount, PinholeCamera, matrix_to_quat, so3_exp  # noqa: E402
+from companion.mapper import Mapper, cartesian, inverse_depth  # noqa: E402
+from companion.mapper.mapper import navigation_drift  # noqa: E402
+from companion.mapper.projection import CameraPose  # noqa: E402
+from companion.messages import NavState, TerrainPoints  # noqa: E402
+from companion.terrain.grid import TerrainGrid  # noqa: E402
+
+CAMERA = PinholeCamera(fx=625.3, fy=625.3, cx=319.5, cy=239.5, width=640, height=480)
+MOUNT = CameraMount.from_euler_deg(0.0, -45.0, 0.0, offset_m=(0.3, 0.0, 0.1))
+TEXTURED_M = 9.0
+
+
+# ----------------------------------------------------------------------------------------------
+# The flight
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def flights():
+    """First leg over the building: perfect navigation, then the sim's default navigation error."""
+    runs = {nv: fly(RunSpec(nav_error=nv, laps=1.0, stop_north_m=125.0, seed=1)) for nv in (False, True)}
+    print("\n" + table(list(runs.values())))
+    return runs
+
+
+def test_perfect_navigation_maps_flat_ground_to_centimetres_and_the_building_to_its_texture(flights):
+    r = flights[False]
+    f = map_figures(r.grid, r.world)
+    c = classify_points(r.points)
+    assert f["cells"] > 300
+    assert f["rmse_flat"] < 0.15 and abs(f["bias_flat"]) < 0.05
+    assert f["spurious"] < 0.01 and f["max_high_flat"] < 1.0
+    assert c["bad"] < 0.01  # emitted points more than 1 m off in height
+    # On one pass the building reaches most of its textured height (>= 90 % by the third lap: benchmark).
+    assert f["building_max"] >= 0.85 * TEXTURED_M
+    # The pull-up law climbs over the 9 m of mapped building with 15 m clearance, not to 50 m.
+    assert 21.0 < r.max_alt_m < 27.0
+
+
+def test_default_navigation_error_leaves_no_phantom_obstacle(flights):
+    r = flights[True]
+    f = map_figures(r.grid, r.world)
+    c = classify_points(r.points)
+    mapping = versus_oracle(r.grid, r.oracle, r.world)
+    assert f["cells"] > 300
+    # What the mapper adds to the navigation error (map vs the same points placed by navigation
+    # error alone) stays small; against the truth, the 0.8 m vertical navigation sigma dominates.
+    assert mapping["spurious"] < 0.02 and mapping["rmse"] < 1.0
+    assert f["rmse_flat"] < 1.0
+    assert f["spurious_flat"] < 0.02 and f["max_high_flat"] < 3.0  # before: 6-10 m spikes on flat ground
+    assert c["mismatch"] < 0.02
+    assert f["building_max"] >= 0.8 * TEXTURED_M
+    assert r.max_alt_m < 28.0  # before: climbed to ~50 m
+
+
+# ----------------------------------------------------------------------------------------------
+# Correlated navigation error
+# ----------------------------------------------------------------------------------------------
+
+
+def test_navigation_drift_position_from_velocity_and_attitude_gauss_markov():
+    cov = np.diag([0.25, 0.25, 0.64, 0.01, 0.01, 0.04, 1e-4, 1e-4, 1e-3])
+    dt, tau = 1 / 15, 10.0
+    q = navigation_drift(cov, dt, tau)
+    np.testing.assert_allclose(np.diag(q)[:3], np.array([0.01, 0.01, 0.04]) * dt * dt)
+    np.testing.assert_allclose(np.diag(q)[3:], (1 - np.exp(-2 * dt / tau)) * np.array([1e-4, 1e-4, 1e-3]))
+    assert navigation_drift(cov, 0.0, tau) is None and navigation_drift(cov, -1.0, tau) is None
+    bad = cov.copy()
+    bad[3, 3] = -1.0  # a broken velocity block never makes the drift indefinite
+    assert np.min(np.linalg.eigvalsh(navigation_drift(bad, dt, tau))) >= -1e-15
+
+
+def _moved_state(model, y, R_ref, p, x):
+    """The feature after the estimate moved by x = [dp, dtheta] (R -> Exp(dtheta) R) about p."""
+    dp, R = x[:3], so3_exp(x[3:])
+    if model is cartesian:
+        return p + dp + (y - p) @ R.T
+    a = p + dp + (y[:, 0:3] - p) @ R.T
+    m = inverse_depth.world_direction(y, R_ref) @ R.T
+    psi, theta = inverse_depth.angles_from_vector(np.einsum("nji,nj->ni", R_ref, m))
+    return np.column_stack([a, psi, theta, y[:, 5]])
+
+
+@pytest.mark.parametrize("model", [inverse_depth, cartesian], ids=["inverse_depth", "cartesian"])
+def test_navigation_frame_jacobian_matches_finite_differences(model):
+    rng = np.random.default_rng(3)
+    pose = CameraPose.from_body(np.array([5.0, -2.0, -15.0]), so3_exp(np.radians([2.0, -3.0, 40.0])), MOUNT)
+    uv = rng.uniform([40, 40], [600, 440], (8, 2))
+    y, _, R_ref = model.initialise_features(uv, rng.uniform(8, 60, 8), pose, CAMERA, np.eye(2), 0.05, np.zeros((6, 6)))
+    p = pose.p + np.array([1.0, 0.5, -0.3])
+    J = model.navigation_frame_jacobian(y, R_ref, p)
+    h = 1e-6
+    for k in range(6):
+        e = np.zeros(6)
+        e[k] = h
+        num = (_moved_state(model, y, R_ref, p, e) - _moved_state(model, y, R_ref, p, -e)) / (2 * h)
+        np.testing.assert_allclose(J[:, :, k], num, atol=1e-6, rtol=1e-5)
+
+
+def _ground_scene(rng, n=3000):
+    return np.column_stack([rng.uniform(0, 140, n), rng.uniform(-30, 30, n), np.zeros(n)])
+
+
+def _fly_feature_level(cfg: MapperConfig, nav_offset, frames=90, sigma_att_deg=2.0, seed=0):
+    """Features of a flat textured ground seen from a vehicle flying north at 6 m/s, 15 m up, with a
+    CONSTANT navigation error ``nav_offset = (dp (3,), dtheta (3,))`` and a P_x that says 0.5 m /
+    ``sigma_att_deg``. Returns the emitted points (K, 3) and where the navigation error alone puts
+    their world points (K, 3) (the truth seen from the erroneous estimate)."""
+    rng = np.random.default_rng(seed)
+    world = _ground_scene(rng)
+    mapper = Mapper(cfg, CAMERA, MOUNT)
+    dp, dth = np.asarray(nav_offset[0], float), np.asarray(nav_offset[1], float)
+    cov = np.diag([0.25] * 3 + [0.01] * 3 + [np.radians(sigma_att_deg) ** 2] * 3)
+    R_err = so3_exp(-dth)  # R_est = Exp(-dtheta) R_true
+    truth_of: dict[int, int] = {}
+    est, ref = [], []
+    for k in range(frames):
+        t = k / 15.0
+        p = np.array([6.0 * t, 0.0, -15.0])
+        p_c, R_nc = MOUNT.camera_pose(p, np.eye(3))
+        h = (world - p_c) @ R_nc
+        uv = CAMERA.project(h)
+        vis = np.flatnonzero((h[:, 0] > 0) & CAMERA.in_image(uv))[:100]
+        z = uv[vis] + rng.normal(0, 0.5, (len(vis), 2))
+        nav = NavState(t, p + dp, np.array([6.0, 0, 0]), matrix_to_quat(R_err), cov)
+        step = mapper.step_measurements(nav, z)
+        for fid, m in zip(step.initialised_ids.tolist(), step.initialised_measurements.tolist()):
+            truth_of[fid] = int(vis[m])
+        p_ce, R_nce = MOUNT.camera_pose(p + dp, R_err)
+        for fid, X in zip(step.points.feature_ids.tolist(), step.points.positions_ned_m):
+            est.append(X)
+            ref.append(p_ce + R_nce @ (R_nc.T @ (world[truth_of[fid]] - p_c)))
+    return np.array(est), np.array(ref)
+
+
+def test_a_constant_navigation_error_costs_decimetres_not_the_map():
+    """P_x says 2 deg of yaw (a GPS/INS heading) and the error is constant. The paper's model treats it
+    as new noise every frame: search regions of ~20 px, depth never below the emission limit,
+    nothing emitted. In the estimate's frame the features converge as without the error; what is
+    left is the bias a tilt error puts on triangulation (0.4 deg of pitch: ~1 % of depth)."""
+    offset = ([0.4, -0.3, 0.6], np.radians([0.3, -0.4, 2.0]))
+    slow = dataclasses.replace(MapperConfig(), nav_attitude_correlation_s=100.0)
+    clean, _ = _fly_feature_level(slow, ([0.0, 0.0, 0.0], np.zeros(3)))
+    est, ref = _fly_feature_level(slow, offset)
+    paper, _ = _fly_feature_level(dataclasses.replace(MapperConfig(), nav_attitude_correlation_s=0.0), offset)
+    assert len(est) >= 0.8 * len(clean) > 80 and len(paper) == 0
+    dz = np.abs(est[:, 2] - ref[:, 2])
+    assert np.median(dz) < 0.25 and np.percentile(dz, 95) < 0.6
+
+
+def test_emitted_points_carry_the_navigation_height_variance():
+    cfg = MapperConfig()
+    rng = np.random.default_rng(1)
+    world = _ground_scene(rng)
+    mapper = Mapper(cfg, CAMERA, MOUNT)
+    cov = np.diag([0.25, 0.25, 0.64] + [0.01] * 3 + [np.radians(0.5) ** 2] * 3)
+    zz = []
+    for k in range(60):
+        p = np.array([6.0 * k / 15, 0.0, -15.0])
+        p_c, R_nc = MOUNT.camera_pose(p, np.eye(3))
+        h = (world - p_c) @ R_nc
+        uv = CAMERA.project(h)
+        vis = np.flatnonzero((h[:, 0] > 0) & CAMERA.in_image(uv))[:100]
+        step = mapper.step_measurements(NavState(k / 15, p, np.array([6.0, 0, 0]), np.array([1.0, 0, 0, 0]), cov), uv[vis])
+        zz.extend(step.points.covariances[:, 2, 2].tolist())
+    assert len(zz) > 50 and min(zz) >= 0.64  # at least the vertical navigation variance
+
+
+# ----------------------------------------------------------------------------------------------
+# Convergence, consistency, appearance
+# ----------------------------------------------------------------------------------------------
+
+
+def test_far_features_are_not_emitted_until_their_depth_sigma_is_small_in_metres():
+    """Relative depth sigma alone lets a feature 150 m away through with a 15 m sigma."""
+    cfg = dataclasses.replace(MapperConfig(), converged_rel_depth_sigma=0.5, converged_max_depth_sigma_m=0.5)
+    rng = np.random.default_rng(2)
+    n = 400
+    wall = np.column_stack([np.full(n, 150.0), rng.uniform(-40, 40, n), rng.uniform(-30, 0, n)])
+    near = _ground_scene(rng, 1500)
+    world = np.vstack([wall, near])
+    level = CameraMount.from_euler_deg(0.0, -10.0, 0.0)  # looks far ahead
+    mapper = Mapper(cfg, CAMERA, level)
+    cov = np.diag([1e-4] * 3 + [1e-4] * 3 + [1e-8] * 3)
+    emitted_far = 0
+    for k in range(60):
+        p = np.array([6.0 * k / 15, 0.0, -15.0])
+        p_c, R_nc = level.camera_pose(p, np.eye(3))
+        h = (world - p_c) @ R_nc
+        uv = CAMERA.project(h)
+        vis = np.flatnonzero((h[:, 0] > 0) & CAMERA.in_image(uv))
+        vis = rng.permutation(vis)[:100]
+        step = mapper.step_measurements(NavState(k / 15, p, np.array([6.0, 0, 0]), np.array([1.0, 0, 0, 0]), cov), uv[vis])
+        emitted_far += int(np.sum(step.points.positions_ned_m[:, 0] > 100))
+    snap = mapper.features()
+    far = snap.positions_ned_m[:, 0] > 100
+    depth = np.linalg.norm(snap.positions_ned_m - p_c, axis=1)
+    # far features pass the relative test but not the absolute one, and none was emitted
+    assert np.any(far & (snap.relative_depth_sigma < 0.5) & (snap.relative_depth_sigma * depth > 0.5))
+    assert emitted_far == 0
+
+
+def test_a_feature_whose_innovations_are_inconsistent_is_dropped_and_never_emitted():
+    """A corner that slides over the ground (a T-junction, a texture edge) cannot be one point."""
+    cfg = dataclasses.replace(MapperConfig(), converged_rel_depth_sigma=1.0, converged_max_depth_sigma_m=100.0,
+                              converge_min_updates=6)
+    mapper = Mapper(cfg, CAMERA, MOUNT)
+    cov = np.diag([1e-4] * 3 + [1e-4] * 3 + [1e-8] * 3)
+    dropped, emitted = 0, 0
+    for k in range(30):
+        p = np.array([6.0 * k / 15, 0.0, -15.0])
+        p_c, R_nc = MOUNT.camera_pose(p, np.eye(3))
+        X = np.array([[25.0, 0.6 * k, 0.0]])  # slides east 0.6 m per frame
+        uv = CAMERA.project((X - p_c) @ R_nc)
+        step = mapper.step_measurements(NavState(k / 15, p, np.array([6.0, 0, 0]), np.array([1.0, 0, 0, 0]), cov), uv)
+        dropped += step.n_inconsistent
+        emitted += len(step.points)
+    assert dropped > 0 and emitted == 0
+
+
+def test_appearance_check_refuses_the_nearer_corner_that_looks_different():
+    """Two corners in one search region: the paper takes the nearer, the patch check the right one."""
+    rng = np.random.default_rng(5)
+    k2 = MapperConfig().appearance_patch_px ** 2
+    a, b = rng.normal(size=k2), rng.normal(size=k2)
+    a, b = [(v - v.mean()) / np.linalg.norm(v - v.mean()) for v in (a, b)]
+    cov = np.diag([1e-4] * 3 + [1e-4] * 3 + [np.radians(0.5) ** 2] * 3)
+    nav = NavState(0.0, np.array([0.0, 0.0, -15.0]), np.zeros(3), np.array([1.0, 0, 0, 0]), cov)
+    nav2 = dataclasses.replace(nav, t_s=1 / 15)
+    z0 = np.array([[320.0, 240.0]])
+    z1 = np.array([[321.0, 240.5], [324.0, 243.0]])  # nearer looks like b, further looks like a
+    for descriptors, expected in ((True, 1), (False, 0)):
+        m = Mapper(MapperConfig(), CAMERA, MOUNT)
+        m.step_measurements(nav, z0, np.array([a]) if descriptors else None)
+        step = m.step_measurements(nav2, z1, np.array([b, a]) if descriptors else None)
+        assert step.matched_measurements.tolist() == [expected]
+
+
+# ----------------------------------------------------------------------------------------------
+# Terrain grid
+# ----------------------------------------------------------------------------------------------
+
+
+def test_grid_rejects_points_too_imprecise_to_belong_to_a_cell():
+    grid = TerrainGrid()
+    cov = np.array([np.diag([16.0**2, 0.5, 1.0]), np.diag([0.1, 0.1, 0.1])])
+    pts = TerrainPoints(0.0, np.array([[190.0, 5.0, -8.0], [10.0, 5.0, -1.0]]), cov, np.array([1, 2]))
+    stats = grid.insert(pts)
+    assert stats.rejected_imprecise == 1 and stats.inserted == 1
+    h, _, n = grid.height_at(np.array([190.5, 10.5]), np.array([5.5, 5.5]))
+    assert np.isnan(h[0]) and n[0] == 0 and abs(h[1] - 1.0) < 1e-6
