@@ -17,8 +17,11 @@ It also times the synthetic camera's render (``Renderer.render``), which runs in
 process in simulation only, and the map snapshots. ``--worker-policy idle|nice`` is an experiment:
 the mapper thread and the render threads at ``SCHED_IDLE`` or nice +10.
 
-Nothing in the daemon is changed; the probe replaces the daemon's sample windows with subclasses
-that also log, and wraps two of its methods on the instance.
+Nothing in the daemon's code is changed: the probe replaces the daemon's sample windows with
+subclasses that also log, and wraps, on the instance, the frame queue's ``put``, ``_map_frame``,
+``control_step``, ``save_snapshot`` (and ``_mapper_worker`` for the experiment). It starts the
+daemon through ``companion.daemon._run``, as ``companion run`` does; a renamed attribute is
+listed under ``missing`` in the samples instead of failing the run.
 """
 
 from __future__ import annotations
@@ -65,7 +68,8 @@ def main(argv=None) -> int:
             super().add(v)
             self.log.append((time.monotonic(), v, clock.now()))
 
-    logs: dict[str, list] = {"frame_to_setpoint_ms": [], "jitter_ms": [], "step_ms": [], "put": [], "map": [], "render": [], "snapshot": [], "control_step": []}
+    logs: dict[str, list] = {k: [] for k in ("frame_to_setpoint_ms", "jitter_ms", "step_ms", "put", "map", "render",
+                                             "snapshot", "control_step")}
     missing = []
     for attr, key in (("frame_to_setpoint_ms", "frame_to_setpoint_ms"), ("control_jitter_ms", "jitter_ms"),
                       ("step_ms", "step_ms")):

@@ -261,7 +261,8 @@ class loop_reference:
             raise ValueError("the loop reference implements the inverse-depth parameterisation only")
         missing = [name for name in MAPPER_FUNCTIONS if not hasattr(mapper_module, name)]
         if missing:
-            raise RuntimeError(f"companion.mapper.mapper no longer uses {', '.join(missing)}: update benchmarks/reference_loop.py")
+            raise RuntimeError(f"companion.mapper.mapper no longer uses {', '.join(missing)}: "
+                               "update benchmarks/reference_loop.py")
         self._module = mapper_module
         self._mapper = mapper
         self._saved: dict = {}

@@ -143,8 +143,6 @@ class MapperConfig:
     converged_max_depth_sigma_m: float = _f(0.5, "m", 1e-3, 1e4, "converged also needs the depth sigma (m) below this: a far feature at 10 % is metres off")
     appearance_patch_px: int = _f(9, "px", 0, 31, "edge of the grey-level patch compared between a feature and a measurement; 0 = Mahalanobis matching only (the paper)")
     appearance_min_ncc: float = _f(0.7, "", -1.0, 1.0, "a pair is only matched if the patches' normalised cross-correlation reaches this")
-    consistency_window: int = _f(8, "updates", 1, 1000, "the NIS of this many last updates is averaged for the consistency test")
-    consistency_alpha: float = _f(1e-3, "", 1e-9, 0.5, "a feature whose windowed NIS exceeds the chi-square (1 - alpha) quantile is dropped, never emitted")
     prior_min_range_m: float = _f(1.0, "m", 0.01, 1e4, "depth prior ranges are clipped to at least this")
     prior_max_range_m: float = _f(200.0, "m", 1.0, 1e6, "range given to rays that miss the ground (rho = 1/this)")
     nav_attitude_correlation_s: float = _f(10.0, "s", 0.0, 1e6, "features live in the autopilot's estimated frame, which drifts between frames: position by P_vel dt^2, "

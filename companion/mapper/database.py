@@ -21,14 +21,11 @@ class FeatureDatabase:
     angles; origin (C, 3) camera centre at initialisation; confidence (C,) int; active (C,) bool;
     ids (C,) int64 (-1 when free); born_frame (C,) frame number of initialisation; updates (C,)
     number of accepted EKF updates; converged (C,) bool (set once, when first converged);
-    nis (C, W) the normalised innovation squared of the last W accepted updates (ring buffer,
-    slot ``updates % W`` is the next to write; see :meth:`mean_nis`); template (C, K) the
-    normalised patch of the feature's last accepted measurement, has_template (C,) bool.
+    template (C, K) the normalised patch of the feature's last accepted measurement (appearance
+    check), has_template (C,) bool.
     """
 
-    def __init__(self, capacity: int, state_dim: int, nis_window: int = 1, template_size: int = 0):
-        if nis_window < 1:
-            raise ValueError(f"NIS window must be >= 1, got {nis_window}")
+    def __init__(self, capacity: int, state_dim: int, template_size: int = 0):
         if capacity < 1:
             raise ValueError(f"feature database capacity must be >= 1, got {capacity}")
         self.capacity = int(capacity)
@@ -43,7 +40,6 @@ class FeatureDatabase:
         self.born_frame = np.zeros(capacity, dtype=np.int64)
         self.updates = np.zeros(capacity, dtype=np.int32)
         self.converged = np.zeros(capacity, dtype=bool)
-        self.nis = np.zeros((capacity, int(nis_window)))
         self.template = np.zeros((capacity, int(template_size)), np.float32)
         self.has_template = np.zeros(capacity, dtype=bool)
         self._next_id = 0
@@ -83,21 +79,8 @@ class FeatureDatabase:
         self.born_frame[slots] = frame
         self.updates[slots] = 0
         self.converged[slots] = False
-        self.nis[slots] = 0.0
         self.has_template[slots] = False
         return ids
-
-    def record_update(self, slots: np.ndarray, nis: np.ndarray) -> None:
-        """Count one accepted update of each of ``slots`` (K,) and keep its NIS (K,) in the window."""
-        slots = np.asarray(slots, dtype=np.intp)
-        self.nis[slots, self.updates[slots] % self.nis.shape[1]] = nis
-        self.updates[slots] += 1
-
-    def mean_nis(self, slots: np.ndarray) -> np.ndarray:
-        """Mean NIS over the last ``min(updates, W)`` updates of each of ``slots`` (K,); 0 if none."""
-        slots = np.asarray(slots, dtype=np.intp)
-        n = np.minimum(self.updates[slots], self.nis.shape[1])
-        return np.where(n > 0, self.nis[slots].sum(axis=1) / np.maximum(n, 1), 0.0)
 
     def remove(self, slots: np.ndarray) -> None:
         slots = np.asarray(slots, dtype=np.intp)

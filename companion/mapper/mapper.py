@@ -1,10 +1,12 @@
 """The monocular terrain mapper: one step per camera frame (seed 000, section II, fig. 1).
 
-``step_measurements(nav, uv)``: validate the navigation state -> drop bad measurements -> predict
-every stored feature (eqs. 3-4) and drop those that left the view -> gate and match (eqs. 10-12)
--> batched EKF update of the matched features (eqs. 6-9) -> confidence indices -> convergence ->
-initialise unmatched measurements (eqs. 13-17) into free or replaceable slots. Converged features
-come out as :class:`~companion.messages.TerrainPoints`.
+``step_measurements(nav, uv, descriptors)``: validate the navigation state -> drop bad measurements
+-> drift of the estimate's frame as process noise (correlated navigation error; docs/mapper.md)
+-> predict every stored feature (eqs. 3-4) and drop those that left the view -> appearance check,
+gate and match (eqs. 10-12) -> batched EKF update of the matched features (eqs. 6-9) -> confidence
+indices -> convergence (relative and absolute depth sigma) -> initialise unmatched measurements
+(eqs. 13-17) into free or replaceable slots. Converged features come out as
+:class:`~companion.messages.TerrainPoints`.
 
 Emission rule: a feature is emitted once when it first converges, and once more, with its final
 (better) estimate, when it leaves the database (out of view or replaced) if it had converged. Its
@@ -17,7 +19,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from statistics import NormalDist
 from types import ModuleType
 
 import numpy as np
@@ -72,7 +73,6 @@ class MapperStep:
     n_excluded: other unmatched measurements not initialised because a stored feature's prediction
     is within ``init_exclusion_chi2`` (Mahalanobis) or ``min_distance_px`` of them.
     n_prior_fallback: new features whose depth prior fell back to flat ground.
-    n_inconsistent: features dropped by the innovation consistency test (included in n_removed).
     init_index: the frame's initialisation confidence index.
     matched_ids / matched_measurements (K,): feature ids and the indices (into the input array) of
     the measurements that updated them; initialised_ids / initialised_measurements likewise;
@@ -92,7 +92,6 @@ class MapperStep:
     n_ambiguous: int = 0
     n_excluded: int = 0
     n_prior_fallback: int = 0
-    n_inconsistent: int = 0
     init_index: float = 0.0
     matched_ids: np.ndarray = field(default_factory=_empty_ids)
     matched_measurements: np.ndarray = field(default_factory=_empty_ids)
@@ -118,13 +117,6 @@ class FeatureSnapshot:
     confidence: np.ndarray
     updates: np.ndarray
     states: np.ndarray
-
-
-def chi2_quantile(p: float, dof: np.ndarray) -> np.ndarray:
-    """Chi-square quantile (Wilson-Hilferty; within 1 % for dof >= 2 at p <= 0.9999). dof: (K,)."""
-    k = np.asarray(dof, dtype=float)
-    z = NormalDist().inv_cdf(p)
-    return k * (1.0 - 2.0 / (9.0 * k) + z * np.sqrt(2.0 / (9.0 * k))) ** 3
 
 
 def _nearest_psd(M: np.ndarray) -> np.ndarray:
@@ -221,10 +213,7 @@ class Mapper:
         self.model = PARAMETERISATIONS[cfg.parameterisation]
         self.prior_sigma = cfg.sigma_rho if cfg.parameterisation == "inverse_depth" else cfg.sigma_depth_rel
         self.R_img = np.diag([cfg.pixel_sigma_px**2, cfg.pixel_sigma_px**2])
-        self.db = FeatureDatabase(cfg.max_features, self.model.STATE_DIM, cfg.consistency_window, cfg.appearance_patch_px**2)
-        # Mean-NIS limit for a window of n updates: the chi-square (2n dof) quantile over n.
-        n = np.arange(1, cfg.consistency_window + 1)
-        self._nis_limit = chi2_quantile(1.0 - cfg.consistency_alpha, 2 * n) / n
+        self.db = FeatureDatabase(cfg.max_features, self.model.STATE_DIM, cfg.appearance_patch_px**2)
         self.frame = 0
         self._detector = None
         self._detector_shape: tuple[int, ...] | None = None
@@ -355,23 +344,12 @@ class Mapper:
         db.y[upd] = model.normalise_state(y_new)
         db.P[upd] = P_new
         updated = upd[ok]
-        db.record_update(updated, Z[point_idx[ok], match_idx[ok]])
+        db.updates[updated] += 1
         if desc is not None:
             db.template[updated] = desc[match_idx[ok]]
             db.has_template[updated] = True
 
-        # Consistency: a feature whose recent innovations are too large for its S is not tracking
-        # one point of the world (a mismatch on a repetitive texture, a corner sliding along an
-        # edge, a T-junction of an occluding edge): it leaves without being emitted (again).
-        n_window = np.minimum(db.updates[updated], cfg.consistency_window)
-        inconsistent = db.mean_nis(updated) > self._nis_limit[np.maximum(n_window, 1) - 1]
-        dropped = updated[inconsistent]
-        removed_ids.append(db.ids[dropped].copy())
-        db.remove(dropped)
-        n_removed += len(dropped)
-        updated = updated[~inconsistent]
-        updated_meas = match_idx[ok][~inconsistent]  # measurement of each kept update
-        slots = np.setdiff1d(slots, dropped, assume_unique=True)
+        updated_meas = match_idx[ok]  # measurement of each accepted update
 
         # Confidence index: +1 matched, -1 visible but not matched (or refused).
         unmatched = np.setdiff1d(slots, updated, assume_unique=True)
@@ -439,7 +417,6 @@ class Mapper:
             n_ambiguous=int(ambiguous.sum()),
             n_excluded=int((blocked & ~used & ~ambiguous).sum()),
             n_prior_fallback=n_fallback,
-            n_inconsistent=len(dropped),
             init_index=init_index,
             matched_ids=db.ids[updated].copy(),
             matched_measurements=meas_index[updated_meas].astype(np.int64),
