@@ -79,7 +79,7 @@ def test_climb_limit_gives_the_trapezoid(gain, dt, a, cap):
     w_free = float(minimum_climb_rate(np.array([gain]), np.array([dt]), a)[0])
     assume(w < cap - 1e-3 and 0.5 * (a * dt + w_free) > cap)
     assert w >= w_free - 1e-12  # the cap can only make the bound stricter
-    h, v = profile_end(w, dt, a, cap, steps=4000)
+    h, v = profile_end(w, dt, a, cap, steps=40000)
     assert v == pytest.approx(0.0, abs=2e-3 * max(1, a * dt))
     assert h == pytest.approx(gain, abs=0.02 * max(1, gain))
 
