@@ -145,7 +145,7 @@ class MapperConfig:
     appearance_min_ncc: float = _f(0.7, "", -1.0, 1.0, "a pair is only matched if the patches' normalised cross-correlation reaches this")
     prior_min_range_m: float = _f(1.0, "m", 0.01, 1e4, "depth prior ranges are clipped to at least this")
     prior_max_range_m: float = _f(200.0, "m", 1.0, 1e6, "range given to rays that miss the ground (rho = 1/this)")
-    nav_attitude_correlation_s: float = _f(10.0, "s", 0.0, 1e6, "features live in the autopilot's estimated frame, which drifts between frames: position by P_vel dt^2, "
+    nav_attitude_correlation_s: float = _f(10.0, "s", 0.0, 1e6, "features live in the autopilot's estimated frame, which drifts between frames: "
                                            "attitude as a Gauss-Markov error with this correlation time, (1 - exp(-2 dt / this)) P_att; 0 = the paper's independent P_x every frame")
 
 

@@ -82,16 +82,18 @@ def test_default_navigation_error_leaves_no_phantom_obstacle(flights):
 # ----------------------------------------------------------------------------------------------
 
 
-def test_navigation_drift_position_from_velocity_and_attitude_gauss_markov():
-    cov = np.diag([0.25, 0.25, 0.64, 0.01, 0.01, 0.04, 1e-4, 1e-4, 1e-3])
+def test_navigation_drift_attitude_gauss_markov_and_the_displacement_it_rotates():
+    P_att = np.diag([1e-4, 1e-4, 1e-3])
+    P_x = np.zeros((6, 6))
+    P_x[0:3, 0:3] = np.diag([0.25, 0.25, 0.64])
+    P_x[3:6, 3:6] = P_att
     dt, tau = 1 / 15, 10.0
-    q = navigation_drift(cov, dt, tau)
-    np.testing.assert_allclose(np.diag(q)[:3], np.array([0.01, 0.01, 0.04]) * dt * dt)
-    np.testing.assert_allclose(np.diag(q)[3:], (1 - np.exp(-2 * dt / tau)) * np.array([1e-4, 1e-4, 1e-3]))
-    assert navigation_drift(cov, 0.0, tau) is None and navigation_drift(cov, -1.0, tau) is None
-    bad = cov.copy()
-    bad[3, 3] = -1.0  # a broken velocity block never makes the drift indefinite
-    assert np.min(np.linalg.eigvalsh(navigation_drift(bad, dt, tau))) >= -1e-15
+    q = navigation_drift(P_x, dt, tau, np.array([0.4, 0.0, 0.0]))
+    np.testing.assert_allclose(np.diag(q)[3:], (1 - np.exp(-2 * dt / tau)) * np.diag(P_att))
+    # moving 0.4 m north under a yaw sigma of sqrt(1e-3) shifts points east by 0.4 sqrt(1e-3)
+    np.testing.assert_allclose(np.diag(q)[:3], [0.0, 0.16 * 1e-3, 0.16 * 1e-4])
+    assert navigation_drift(P_x, 0.0, tau) is None and navigation_drift(P_x, -1.0, tau) is None
+    np.testing.assert_allclose(navigation_drift(P_x, dt, tau)[0:3, 0:3], 0.0)
 
 
 def _moved_state(model, y, R_ref, p, x):

@@ -119,40 +119,32 @@ class FeatureSnapshot:
     states: np.ndarray
 
 
-def _nearest_psd(M: np.ndarray) -> np.ndarray:
-    """Symmetric part of ``M`` with negative eigenvalues set to 0 (the velocity block is not
-    checked by :func:`check_nav`, which only needs the pose block)."""
-    w, V = np.linalg.eigh(0.5 * (M + M.T))
-    return (V * np.maximum(w, 0.0)) @ V.T
-
-
 def navigation_drift(
-    covariance: np.ndarray, dt_s: float, attitude_correlation_s: float, velocity_ned_mps: np.ndarray | None = None
+    P_x: np.ndarray, dt_s: float, attitude_correlation_s: float, displacement_m: np.ndarray | None = None
 ) -> np.ndarray | None:
     """Covariance (6, 6) of the change of the navigation error over ``dt_s`` (docs/mapper.md,
-    "Correlated navigation error"), from the 9x9 ``NavState.covariance``:
+    "Correlated navigation error"), from the pose covariance ``P_x`` (6, 6) ``[position, attitude]``:
 
-    * position: the estimate's position error is the integral of its velocity error (an EKF's
-      position is integrated from its velocity between fixes), so it changes by
-      ``P_vel dt^2`` in ``dt``;
     * attitude: a first-order Gauss-Markov error with stationary covariance ``P_att`` and correlation
       time ``tau`` changes by ``(1 - exp(-2 dt / tau)) P_att`` (the part of ``e(t + dt)`` that is new);
-    * and even a constant attitude error moves the estimate's frame while the vehicle travels: the
-      world seen from the estimate is rotated about the vehicle (``X' = Exp(-dtheta) (X - p) + p``),
-      so a displacement ``d = v dt`` shifts every point by ``[dtheta]x d``: ``[d]x P_att [d]x^T`` is
-      added to the position block (``v`` = ``velocity_ned_mps``, (3,)).
+    * position: even a constant attitude error moves the estimate's frame while the vehicle travels
+      (the world seen from the estimate is rotated about the vehicle, ``X' = Exp(-dtheta)(X - p) + p``),
+      so a displacement ``d`` (3,) (between the two steps' estimated positions) shifts every point by
+      ``[dtheta]x d``: ``[d]x P_att [d]x^T``. The position error's own change (velocity error times
+      dt, millimetres per frame) is neglected: below a pixel at the ranges mapped, and a pose-only
+      recording (TUM) has no velocity covariance, so the mapper stays a function of poses and
+      their covariance.
 
     None when ``dt_s`` is not positive (first step, time going back).
     """
     if not (dt_s > 0) or not np.isfinite(dt_s):
         return None
     q = np.zeros((6, 6))
-    q[0:3, 0:3] = _nearest_psd(covariance[3:6, 3:6]) * dt_s * dt_s
-    P_att = covariance[6:9, 6:9]
+    P_att = P_x[3:6, 3:6]
     q[3:6, 3:6] = -np.expm1(-2.0 * dt_s / attitude_correlation_s) * P_att
-    if velocity_ned_mps is not None:
-        D = skew(np.asarray(velocity_ned_mps, dtype=float).reshape(3) * dt_s)
-        q[0:3, 0:3] += D @ P_att @ D.T
+    if displacement_m is not None:
+        D = skew(np.asarray(displacement_m, dtype=float).reshape(3))
+        q[0:3, 0:3] = D @ P_att @ D.T
     return 0.5 * (q + q.T)
 
 
@@ -218,6 +210,7 @@ class Mapper:
         self._detector = None
         self._detector_shape: tuple[int, ...] | None = None
         self._last_nav_t = np.inf  # time of the last accepted step (no drift before the first)
+        self._last_nav_p = np.zeros(3)  # body position at that step
         self._emit_P_x: np.ndarray | None = None  # this step's P_x and body position, for emission
         self._emit_p = np.zeros(3)
 
@@ -306,13 +299,13 @@ class Mapper:
         P_meas = P_x
         if cfg.nav_attitude_correlation_s > 0:
             P_meas = np.zeros_like(P_x)
-            cov = np.asarray(nav.covariance, dtype=float)
-            q = navigation_drift(cov, nav.t_s - self._last_nav_t, cfg.nav_attitude_correlation_s, nav.velocity_ned_mps)
+            q = navigation_drift(P_x, nav.t_s - self._last_nav_t, cfg.nav_attitude_correlation_s, pose.p - self._last_nav_p)
             if len(slots) and q is not None:
                 J = model.navigation_frame_jacobian(db.y[slots], db.R_ref[slots], pose.p)
                 Q = J @ q @ np.swapaxes(J, 1, 2)
                 db.P[slots] += 0.5 * (Q + np.swapaxes(Q, 1, 2))
         self._last_nav_t = float(nav.t_s)
+        self._last_nav_p = pose.p.copy()
 
         # Predict (eqs. 3-4); features behind the camera or outside the image leave the database.
         uv_pred, h_c = model.measurement_model(db.y[slots], db.R_ref[slots], pose, self.camera)
