@@ -292,7 +292,7 @@ class Daemon:
             with self.grid_lock:
                 stats = self.grid.insert(step.points)
             self.points_converged += len(step.points)
-            for name in ("rejected_invalid", "rejected_outlier"):
+            for name in ("rejected_invalid", "rejected_outlier", "rejected_imprecise"):
                 self.grid_rejections[name] += int(getattr(stats, name, 0))
         self.step_ms.add((time.perf_counter() - t0) * 1e3)
         self.frames_mapped += 1
