@@ -219,6 +219,14 @@ class Transport:
     def close(self) -> None:
         raise NotImplementedError
 
+    def _write_stream(self, t: asyncio.Transport | None, data: bytes) -> bool:
+        """Write to a TCP transport unless it is gone or backed up (a slow peer must not grow memory)."""
+        if t is None or t.is_closing() or t.get_write_buffer_size() > TCP_WRITE_BUFFER_LIMIT:
+            self.dropped_writes += 1
+            return False
+        t.write(data)
+        return True
+
     @property
     def local_address(self) -> tuple | None:
         return None
@@ -326,12 +334,7 @@ class TcpTransport(Transport):
             self.on_lost(f"TCP connection closed by the peer{': ' + str(exc) if exc else ''}")
 
     def write(self, data: bytes) -> bool:
-        t = self._proto.transport if self._proto else None
-        if t is None or t.is_closing() or t.get_write_buffer_size() > TCP_WRITE_BUFFER_LIMIT:
-            self.dropped_writes += 1
-            return False
-        t.write(data)
-        return True
+        return self._write_stream(self._proto.transport if self._proto else None, data)
 
     def close(self) -> None:
         self._closing = True
@@ -364,12 +367,7 @@ class TcpServerTransport(Transport):
         return proto
 
     def write(self, data: bytes) -> bool:
-        t = self._client.transport if self._client else None
-        if t is None or t.is_closing() or t.get_write_buffer_size() > TCP_WRITE_BUFFER_LIMIT:
-            self.dropped_writes += 1
-            return False
-        t.write(data)
-        return True
+        return self._write_stream(self._client.transport if self._client else None, data)
 
     def close(self) -> None:
         if self._client and self._client.transport:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import socket
 import time
 
 import cv2
@@ -15,6 +14,7 @@ from companion.terrain.codec import encode_tile
 from companion.terrain.tile import Tile
 from drivers.ground_station import UNKNOWN_BGR, GroundMap, GroundStation
 from drivers.zenoh_bus import BusKeys, ZenohBus, json_payload
+from tests.processes import free_port
 
 T = 8
 CELL = 2.0
@@ -145,12 +145,6 @@ def test_empty_map_still_renders(tmp_path):
 # ------------------------------------------------------------------------------------------
 # Over Zenoh
 # ------------------------------------------------------------------------------------------
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def cfg(**kw) -> ZenohConfig:

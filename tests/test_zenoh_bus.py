@@ -26,14 +26,9 @@ from drivers.zenoh_bus import (
     ZenohBus,
     zenoh_config,
 )
+from tests.processes import free_port
 
 VEHICLE = "v1"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def bus_config(**kw) -> ZenohConfig:

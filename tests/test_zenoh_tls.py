@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import re
 import shutil
-import socket
 import subprocess
 import time
 from pathlib import Path
@@ -17,17 +16,12 @@ from companion.terrain.codec import encode_tile
 from companion.terrain.tile import Tile
 from drivers.ground_station import GroundStation
 from drivers.zenoh_bus import ZenohBus
+from tests.processes import free_port
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "zenoh.md"
 DOC_DIR = "/etc/companion/tls/"
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def make_certificates(d: Path) -> None:

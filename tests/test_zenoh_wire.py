@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import math
 import re
-import socket
 import struct
 import time
 import zlib
@@ -24,6 +23,7 @@ from companion.config import ZenohConfig
 from companion.terrain.codec import encode_tile
 from companion.terrain.tile import Tile
 from drivers.zenoh_bus import ZenohBus
+from tests.processes import free_port
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 
@@ -56,12 +56,6 @@ def tile_key_indices(key: str, vehicle: str) -> tuple[int, int]:
 
 
 # ---- helpers ---------------------------------------------------------------------------------
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def raw_peer(connect: str) -> zenoh.Session:
