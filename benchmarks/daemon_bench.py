@@ -12,8 +12,8 @@ Three processes on this machine, as a user would run them:
 
 The figures are the daemon's own (``companion.status/1`` on Zenoh, ``control.jitter_ms`` and
 ``control.frame_to_setpoint_ms``), read by a Zenoh client that knows only the documented key and
-JSON fields. The status windows hold the last 2000 samples since the daemon started: the run is
-reported as a whole (start-up included; see docs/performance.md for what that means).
+JSON fields. The status windows hold the last 30 s (the 40 s run's status covers flight only);
+the probe's samples give the steady state and the parts of the latency besides.
 """
 
 from __future__ import annotations
@@ -50,6 +50,15 @@ SETTLE_S = 5.0  # steady state: samples from this long after take-off
 
 def launcher(module: str, cores: str = "-", switch_interval_s: float | None = None) -> list[str]:
     return [sys.executable, "-c", LAUNCHER, cores, "-" if switch_interval_s is None else repr(switch_interval_s), module]
+
+
+def daemon_env() -> dict:
+    """The environment ``companion run`` gives itself (companion/cli.py): one BLAS / OpenMP thread
+    unless set otherwise; the probe imports NumPy before any of the daemon's code runs."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+        env.setdefault(name, "1")
+    return env
 
 
 def free_port() -> int:
@@ -164,7 +173,8 @@ def _wait(pred, timeout_s: float, poll_s: float = 0.1) -> bool:
 
 def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=print, daemon_cores: str = "1",
                          sim_cores: str = "0", switch_interval_s: float | None = None,
-                         keep_samples: str | None = None, worker_policy: str = "default") -> dict:
+                         keep_samples: str | None = None, worker_policy: str = "default",
+                         mapper_process: bool = False) -> dict:
     """Fly the circuit with the daemon mapping at ``rate_hz`` for ``duration_s`` after take-off;
     returns the daemon's control figures (and what went wrong, if anything).
 
@@ -173,11 +183,14 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
     the camera's world) the other. ``switch_interval_s``: the daemon's GIL switch interval
     (``sys.setswitchinterval``; None = Python's default, 5 ms). ``keep_samples``: copy the probe's
     samples (JSON, :mod:`benchmarks.daemon_probe`) to this path. ``worker_policy``: "idle" or
-    "nice" lowers the mapper and render threads' priority (an experiment; see the probe)."""
+    "nice" lowers the mapper and render threads' priority (an experiment; see the probe).
+    ``mapper_process``: run the daemon's mapper in a child process (companion/mapper_process.py)
+    instead of its worker thread."""
     from drivers.sim.harness import MavClient, SimVehicleProcess
 
     result: dict = {"duration_s": duration_s, "camera_rate_hz": rate_hz, "error": "", "daemon_cores": daemon_cores,
-                    "sim_cores": sim_cores, "switch_interval_s": switch_interval_s, "worker_policy": worker_policy}
+                    "sim_cores": sim_cores, "switch_interval_s": switch_interval_s, "worker_policy": worker_policy,
+                    "mapper_process": mapper_process}
     tmp = tempfile.TemporaryDirectory(prefix="companion-bench-")
     pilot_client = MavClient.udp_listener()
     sim = SimVehicleProcess(["--flavour", "ardupilot", "--scenario", "default", "--tcp-listen", "127.0.0.1:0",
@@ -201,9 +214,10 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
         with open(daemon_log, "w") as err:
             daemon = subprocess.Popen(launcher("benchmarks.daemon_probe", daemon_cores, switch_interval_s)
                                       + ["--config", cfg_path, "--samples", samples_path, "--log-level", "WARNING",
-                                         "--worker-policy", worker_policy],
+                                         "--worker-policy", worker_policy]
+                                      + (["--mapper-process"] if mapper_process else []),
                                       stdout=subprocess.DEVNULL, stderr=err,
-                                      env=dict(os.environ, PYTHONUNBUFFERED="1"), cwd=str(REPO))
+                                      env=daemon_env(), cwd=str(REPO))
         listener = _wait_listener(f"tcp/127.0.0.1:{zenoh_port}", 20.0)
         if listener is None:
             raise RuntimeError("no Zenoh session with the daemon")

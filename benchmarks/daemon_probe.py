@@ -2,9 +2,8 @@
 ``companion run --config FILE`` starts it, that also keeps every latency and jitter sample with the
 time it was taken and writes them to a JSON file when it stops.
 
-Why: the daemon's status gives p50/p99 over its last 2000 samples since start, so a run's figures
-include the start-up (imports, renderer build, take-off). With the time of each sample the
-benchmark can also report the steady state (samples after take-off), and split the
+Why: the daemon's status gives p50/p99 over the last 30 s only. With the time of each sample the
+benchmark can also report the steady state (all samples from 5 s after take-off), and split the
 frame-to-setpoint latency into its parts:
 
 - ``capture_to_queue``: frame stamp -> frame in the mapper's queue (for the synthetic camera: age
@@ -14,8 +13,10 @@ frame-to-setpoint latency into its parts:
 - the rest, to the setpoint: waking the event loop and the control step.
 
 It also times the synthetic camera's render (``Renderer.render``), which runs inside the daemon's
-process in simulation only, and the map snapshots. ``--worker-policy idle|nice`` is an experiment:
-the mapper thread and the render threads at ``SCHED_IDLE`` or nice +10.
+process in simulation only, and the map snapshots. ``--mapper-process`` runs the daemon's mapper in
+a child process (companion/mapper_process.py). ``--worker-policy idle|nice`` is an experiment:
+the mapper thread and the render threads at ``SCHED_IDLE`` or nice +10 (measured worse: a
+low-priority thread preempted while it holds the GIL keeps the event loop waiting).
 
 Nothing in the daemon's code is changed: the probe replaces the daemon's sample windows with
 subclasses that also log, and wraps, on the instance, the frame queue's ``put``, ``_map_frame``,
@@ -43,13 +44,15 @@ def main(argv=None) -> int:
     p.add_argument("--config", required=True)
     p.add_argument("--samples", required=True, help="JSON file written at exit")
     p.add_argument("--log-level", default="WARNING")
+    p.add_argument("--mapper-process", action="store_true",
+                   help="run the mapper in a child process (companion/mapper_process.py) instead of the daemon's thread")
     p.add_argument("--worker-policy", choices=("default", "idle", "nice"), default="default",
                    help="experiment: run the mapper thread (and the synthetic camera's render threads) at "
                         "SCHED_IDLE or nice +10, so the event loop's wake-ups preempt them at once")
     args = p.parse_args(argv)
     setup_logging(args.log_level)
     try:
-        daemon = Daemon(load_config(args.config))
+        daemon = Daemon(load_config(args.config), mapper_process=args.mapper_process)
     except ConfigError as exc:
         print(f"configuration: {exc}", file=sys.stderr)
         return 2

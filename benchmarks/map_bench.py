@@ -19,7 +19,7 @@ from companion.config import AvoidanceConfig, TerrainConfig
 from companion.messages import TerrainPoints
 from companion.terrain.grid import TerrainGrid
 
-BYTES_PER_CELL = 16  # height f32, variance f32, count u32, disagreement f32 (companion.terrain.grid)
+BYTES_PER_CELL = 20  # height f32, variance f32, count u32, disagreement f32, pending f32 (companion.terrain.grid)
 
 
 def converged_points(flight: Flight, n_points: int = 1000, n_features: int = 300) -> TerrainPoints:

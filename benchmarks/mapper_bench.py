@@ -164,23 +164,25 @@ def run_mapper(flight: Flight, n_features: int, repeats: int = 1, warmup_frames:
 
 
 class SectionTimer:
-    """Accumulates wall time per named section; :meth:`wrap` returns a timing wrapper."""
+    """Accumulates the time of ``clock`` (wall by default; ``time.thread_time`` for this thread's
+    CPU time) per named section; :meth:`wrap` returns a timing wrapper."""
 
-    def __init__(self):
+    def __init__(self, clock=time.perf_counter):
         self.total: dict[str, float] = {}
         self.calls: dict[str, int] = {}
+        self.clock = clock
 
     def wrap(self, name: str, fn):
-        total, calls = self.total, self.calls
+        total, calls, clock = self.total, self.calls, self.clock
         total.setdefault(name, 0.0)
         calls.setdefault(name, 0)
 
         def timed(*args, **kwargs):
-            t0 = time.perf_counter()
+            t0 = clock()
             try:
                 return fn(*args, **kwargs)
             finally:
-                total[name] += time.perf_counter() - t0
+                total[name] += clock() - t0
                 calls[name] += 1
 
         return timed
@@ -209,15 +211,15 @@ DETECTOR_SECTIONS = [
     ("detect: sub-pixel refine (cv2.cornerSubPix)", HarrisDetector, "refine"),
 ]
 MAPPER_FUNCTIONS = [
-    ("check_nav (x2: step and step_measurements)", "check_nav"),
+    ("check_nav", "_checked_pose_covariance"),
     ("appearance: patch descriptors", "patch_descriptors"),
-    ("appearance: correlation N x M", "correlation"),
+    ("appearance: correlation of gated pairs", "pair_correlation"),
     ("navigation drift (process noise)", "navigation_drift"),
     ("match: innovation covariance S (eq. 10)", "innovation_covariance"),
-    ("match: Mahalanobis distances N x M (eqs. 11-12)", "mahalanobis_distances"),
-    ("match: gate and mutual nearest", "gate_and_match"),
+    ("match: candidate pairs and their distances (eqs. 11-12)", "candidate_pairs"),
+    ("match: gate and mutual nearest", "gate_and_match_pairs"),
     ("update: EKF (eqs. 7-9)", "ekf_update"),
-    ("init: exclusion near stored features (N x M)", "near_stored_features"),
+    ("init: exclusion near stored features", "near_stored_pairs"),
     ("init: depth prior", "prior_ranges"),
 ]
 MODEL_FUNCTIONS = [
@@ -228,13 +230,15 @@ MODEL_FUNCTIONS = [
     ("converge: relative depth sigma and depth", "relative_depth_sigma"),
     ("converge: relative depth sigma and depth", "depth_from_origin"),
 ]
-# Called by Mapper.step outside step_measurements (with the detector).
-OUTSIDE_MEASUREMENTS = ("appearance: patch descriptors",)
+# Called by Mapper.step outside the measurement update ``Mapper._step_checked`` (with the detector).
+OUTSIDE_MEASUREMENTS = ("check_nav", "appearance: patch descriptors")
 
 
-def section_profile(flight: Flight, n_features: int, frames: int) -> dict:
+def section_profile(flight: Flight, n_features: int, frames: int, clock=time.perf_counter) -> dict:
     """Mean ms per frame of each section of ``Mapper.step`` (timers around the functions it calls),
-    plus the untimed rest: detector selection (greedy distance, bins) and the step's bookkeeping."""
+    plus the untimed rest: detector selection (greedy distance, bins) and the step's bookkeeping.
+    ``clock``: wall time by default; ``time.thread_time`` gives CPU time (robust to the load of
+    other processes)."""
     import companion.mapper.mapper as mapper_module
 
     n = min(frames, len(flight))
@@ -242,7 +246,7 @@ def section_profile(flight: Flight, n_features: int, frames: int) -> dict:
     for k in range(min(30, n)):  # warm-up
         mapper.step(flight.navs[k], flight.images[k])
     mapper = new_mapper(flight, n_features)
-    timer = SectionTimer()
+    timer = SectionTimer(clock)
     missing: list[str] = []
     model = mapper.model
     mapper.model = SimpleNamespace(**{k: getattr(model, k) for k in dir(model) if not k.startswith("__")})
@@ -255,18 +259,17 @@ def section_profile(flight: Flight, n_features: int, frames: int) -> dict:
             stack.enter_context(_patched(mapper.model, attr, timer, label, missing))
         stack.enter_context(_patched(Mapper, "_emitted_points", timer, "emit: converged points out", missing))
         stack.enter_context(_patched(HarrisDetector, "__call__", timer, "_detector", missing))
-        stack.enter_context(_patched(Mapper, "step_measurements", timer, "_measurements", missing))
-        t0 = time.perf_counter()
+        stack.enter_context(_patched(Mapper, "_step_checked", timer, "_measurements", missing))
+        t0 = clock()
         for k in range(n):
             mapper.step(flight.navs[k], flight.images[k])
-        wall = time.perf_counter() - t0
+        wall = clock() - t0
     mapper.model = model
     per = {k: v / n * 1e3 for k, v in timer.total.items()}
     detector = per.pop("_detector", 0.0)
     measurements = per.pop("_measurements", 0.0)
     step = wall / n * 1e3
-    check_nav_once = 0.5 * per.get(MAPPER_FUNCTIONS[0][0], 0.0)  # one call in step, one in step_measurements
-    outside = check_nav_once + sum(per.get(k, 0.0) for k in OUTSIDE_MEASUREMENTS)
+    outside = sum(per.get(k, 0.0) for k in OUTSIDE_MEASUREMENTS)
     det_parts = sum(v for k, v in per.items() if k.startswith("detect:"))
     meas_parts = sum(v for k, v in per.items() if not k.startswith("detect:")) - outside
     rows = dict(per)
@@ -324,18 +327,19 @@ def record_match_inputs(flight: Flight, n_features: int, frames: int) -> list[di
 
 
 def match_update(model, fns, inp: dict, camera, cfg, R_img) -> tuple:
-    """Predict -> drop the invisible -> Jacobians -> S -> distances -> gate -> update -> exclusion,
-    with the given model (measurement model and Jacobian) and functions (matching and update)."""
+    """Predict -> drop the invisible -> Jacobians -> S -> candidate pairs and their distances ->
+    gate -> update -> exclusion, with the given model (measurement model and Jacobian) and functions
+    (matching and update), as ``Mapper.step_measurements`` does them (without appearance)."""
     y, P, R_ref, pose, P_x, z = inp["y"], inp["P"], inp["R_ref"], inp["pose"], inp["P_x"], inp["z"]
     uv, h = model.measurement_model(y, R_ref, pose, camera)
     vis = (h[:, 0] > 0) & camera.in_image(uv)
     y, P, R_ref, uv, h = y[vis], P[vis], R_ref[vis], uv[vis], h[vis]
     C_x, C_y = model.measurement_jacobian(y, R_ref, pose, camera, h)
     S = fns.innovation_covariance(C_x, C_y, P_x, P, R_img)
-    Z = fns.mahalanobis_distances(z, uv, S)
-    pi, mi, ambiguous = fns.gate_and_match(Z, cfg.gate_chi2)
+    pairs = fns.candidate_pairs(z, uv, S, max(cfg.gate_chi2, cfg.init_exclusion_chi2), cfg.min_distance_px)
+    pi, mi, ambiguous = fns.gate_and_match_pairs(pairs.point, pairs.meas, pairs.Z, cfg.gate_chi2, len(z))
     y1, P1, ok = fns.ekf_update(y[pi], P[pi], z[mi] - uv[pi], C_x[pi], C_y[pi], P_x, R_img)
-    blocked = ambiguous | fns.near_stored_features(Z, z, uv, cfg.init_exclusion_chi2, cfg.min_distance_px)
+    blocked = ambiguous | fns.near_stored_pairs(pairs, len(z), cfg.init_exclusion_chi2, cfg.min_distance_px)
     return y1, P1, ok, pi, mi, blocked
 
 
@@ -343,9 +347,9 @@ def batched_functions():
     from companion.mapper import inverse_depth, matching, update
 
     fns = SimpleNamespace(innovation_covariance=matching.innovation_covariance,
-                          mahalanobis_distances=matching.mahalanobis_distances,
-                          gate_and_match=matching.gate_and_match,
-                          near_stored_features=matching.near_stored_features,
+                          candidate_pairs=matching.candidate_pairs,
+                          gate_and_match_pairs=matching.gate_and_match_pairs,
+                          near_stored_pairs=matching.near_stored_pairs,
                           ekf_update=update.ekf_update)
     return inverse_depth, fns
 
@@ -402,33 +406,42 @@ def compare_whole_step(flight: Flight, n_features: int, frames: int) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------
-# Evidence for the first optimisation proposal (docs/performance.md): the N x M distances
+# The N x M matching: dense matrices against candidate pairs (what changed, measured in the run)
 # ------------------------------------------------------------------------------------------------
 
 
-def distances_by_components(z: np.ndarray, g: np.ndarray, S: np.ndarray, exclusion_chi2: float, exclusion_px: float):
-    """Prototype of eqs. 11-12 and the exclusion test without ``einsum`` or ``(N, M, 2)``
-    temporaries: the differences per axis ``(N, M)`` once, ``Z = a e0^2 + 2 b e0 e1 + c e1^2`` from
-    the three entries of ``S^-1``, and the pixel distance from the same differences. Returns
-    ``Z (N, M)`` and ``near (M,)`` equal to ``mahalanobis_distances`` and ``near_stored_features``."""
-    from companion.mapper.matching import inverse_2x2
+def dense_matching(z: np.ndarray, g: np.ndarray, S: np.ndarray, cfg) -> tuple:
+    """Eqs. 11-12, gate, mutual nearest and exclusion on the dense ``(N, M)`` matrices, as the
+    mapper did them before issue 7's rework (``einsum`` over ``(N, M, 2)`` differences and a
+    second ``(N, M, 2)`` array for the pixel distances)."""
+    from companion.mapper.matching import gate_and_match, inverse_2x2
 
     S_inv, ok = inverse_2x2(S)
-    e0 = z[None, :, 0] - g[:, 0, None]
-    e1 = z[None, :, 1] - g[:, 1, None]
-    Z = S_inv[:, 0, 0, None] * (e0 * e0) + (2.0 * S_inv[:, 0, 1, None]) * (e0 * e1) + S_inv[:, 1, 1, None] * (e1 * e1)
+    e = z[None, :, :] - g[:, None, :]
+    Z = np.einsum("nmi,nij,nmj->nm", e, S_inv, e)
     Z[~ok, :] = np.inf
-    if len(g) == 0 or len(z) == 0:
-        return Z, np.zeros(len(z), dtype=bool)
-    near = ((Z < exclusion_chi2) | (e0 * e0 + e1 * e1 < exclusion_px**2)).any(axis=0)
-    return Z, near
+    point_idx, meas_idx, ambiguous = gate_and_match(Z, cfg.gate_chi2)
+    if len(g) and len(z):
+        near = ((Z < cfg.init_exclusion_chi2) | (np.sum(e**2, axis=2) < cfg.min_distance_px**2)).any(axis=0)
+    else:
+        near = np.zeros(len(z), dtype=bool)
+    return point_idx, meas_idx, ambiguous | near
 
 
-def distance_proposal(flight: Flight, n_features: int, frames: int) -> dict:
-    """Current ``mahalanobis_distances`` + ``near_stored_features`` against
-    :func:`distances_by_components`, interleaved on the recorded inputs of real steps; checks they agree."""
+def pair_matching(z: np.ndarray, g: np.ndarray, S: np.ndarray, cfg) -> tuple:
+    """The same decisions from candidate pairs (``companion.mapper.matching``), as the mapper runs them."""
     from companion.mapper import matching
 
+    pairs = matching.candidate_pairs(z, g, S, max(cfg.gate_chi2, cfg.init_exclusion_chi2), cfg.min_distance_px)
+    point_idx, meas_idx, ambiguous = matching.gate_and_match_pairs(pairs.point, pairs.meas, pairs.Z, cfg.gate_chi2, len(z))
+    near = matching.near_stored_pairs(pairs, len(z), cfg.init_exclusion_chi2, cfg.min_distance_px)
+    return point_idx, meas_idx, ambiguous | near
+
+
+def matching_comparison(flight: Flight, n_features: int, frames: int) -> dict:
+    """:func:`dense_matching` against :func:`pair_matching`, interleaved on the recorded inputs of
+    real steps (stored features' predictions and S, the frame's measurements); checks that every
+    decision (matches, ambiguous and excluded measurements) is the same."""
     inputs = [i for i in record_match_inputs(flight, n_features, frames) if len(i["y"])]
     cfg = mapper_config(n_features, flight.cfg.mapper)
     R_img = np.diag([cfg.pixel_sigma_px**2] * 2)
@@ -440,24 +453,18 @@ def distance_proposal(flight: Flight, n_features: int, frames: int) -> dict:
         C_x, C_y = model.measurement_jacobian(inp["y"][vis], inp["R_ref"][vis], inp["pose"], flight.camera, h[vis])
         S = fns.innovation_covariance(C_x, C_y, inp["P_x"], inp["P"][vis], R_img)
         cases.append((inp["z"], uv[vis], S))
-    now, proto, max_rel = [], [], 0.0
+    times = {"dense": [], "pairs": []}
+    same = 0
     for k, (z, g, S) in enumerate(cases):
-        for which in ((0, 1) if k % 2 == 0 else (1, 0)):
+        out = {}
+        for name in (("dense", "pairs") if k % 2 == 0 else ("pairs", "dense")):
+            fn = dense_matching if name == "dense" else pair_matching
             t0 = time.perf_counter()
-            if which == 0:
-                Z = matching.mahalanobis_distances(z, g, S)
-                near = matching.near_stored_features(Z, z, g, cfg.init_exclusion_chi2, cfg.min_distance_px)
-                now.append((time.perf_counter() - t0) * 1e3)
-                ref = (Z, near)
-            else:
-                Z2, near2 = distances_by_components(z, g, S, cfg.init_exclusion_chi2, cfg.min_distance_px)
-                proto.append((time.perf_counter() - t0) * 1e3)
-        fin = np.isfinite(ref[0])
-        if fin.any():
-            max_rel = max(max_rel, float(np.max(np.abs(Z2[fin] - ref[0][fin]) / np.maximum(1.0, np.abs(ref[0][fin])))))
-        if not (np.array_equal(np.isinf(Z2), np.isinf(ref[0])) and np.array_equal(near2, ref[1])):
-            max_rel = float("inf")
-    a, b = summary(now), summary(proto)
-    return {"n_features": n_features, "frames": len(cases), "current_ms": a, "prototype_ms": b,
+            out[name] = fn(z, g, S, cfg)
+            times[name].append((time.perf_counter() - t0) * 1e3)
+        same += all(np.array_equal(a, b) for a, b in zip(out["dense"], out["pairs"]))
+    a, b = summary(times["dense"]), summary(times["pairs"])
+    return {"n_features": n_features, "frames": len(cases), "dense_ms": a, "pairs_ms": b,
             "saved_ms_median": a["median"] - b["median"], "speedup": a["median"] / b["median"],
-            "max_relative_difference": max_rel}
+            "identical_decisions": f"{same}/{len(cases)}",
+            "pairs_per_frame": float(np.mean([len(S) * len(z) for z, _, S in cases]))}

@@ -12,7 +12,9 @@ Equations (seed 000; docs/mapper.md), for one inverse-depth feature
   ``x = [p, dtheta]`` (``R_nb_true = Exp(dtheta) R_nb``, lever arm rotating with the body);
 - innovation covariance (eq. 10): ``S = C_x P_x C_x^T + C_y P_y C_y^T + R``;
 - Mahalanobis distance (eqs. 11-12): ``Z_ij = e^T S_j^-1 e``, ``e = z_i - g_j``; gate ``Z < Z_lim``
-  and mutual nearest neighbours;
+  and mutual nearest neighbours; the pairs near enough to matter (inside a gate or an exclusion
+  distance), which the batched mapper finds without the ``N x M`` matrix and the loop finds by
+  computing each feature's whole row;
 - EKF update (eqs. 7-9), feature only, Joseph form with ``R_eff = C_x P_x C_x^T + R``.
 
 Each ``*_one`` function is one feature. The functions without the suffix loop over features and
@@ -214,6 +216,56 @@ def near_stored_features(Z, z, g, exclusion_chi2, exclusion_px):
     return near
 
 
+def candidate_pairs(z, g, S, chi2, px):
+    """Pairs (point j, measurement i) with ``Z_ij < chi2`` or ``|z_i - g_j| < px``: each feature's
+    whole row of distances (:func:`mahalanobis_row_one`), then the pairs that pass. Returns an object
+    with ``point``, ``meas``, ``Z``, ``d2`` (P,), the fields of the batched ``CandidatePairs``."""
+    point, meas, Zs, d2s = [], [], [], []
+    for j in range(len(g)):
+        Z = mahalanobis_row_one(z, g[j], S[j])
+        d2 = (z[:, 0] - g[j, 0]) ** 2 + (z[:, 1] - g[j, 1]) ** 2
+        for i in np.flatnonzero((Z < chi2) | (d2 < px**2)):
+            point.append(j)
+            meas.append(i)
+            Zs.append(Z[i])
+            d2s.append(d2[i])
+    return SimpleNamespace(point=np.array(point, dtype=np.intp), meas=np.array(meas, dtype=np.intp),
+                           Z=np.array(Zs, dtype=float), d2=np.array(d2s, dtype=float))
+
+
+def gate_and_match_pairs(point, meas, Z, gate, n_meas):
+    """Gate and mutual nearest neighbours over pairs, as loops: each point's nearest measurement and
+    each measurement's nearest point among the pairs inside the gate (ties to the lower index)."""
+    nearest_meas: dict = {}  # point -> (Z, measurement)
+    nearest_point: dict = {}  # measurement -> (Z, point)
+    inside_any = np.zeros(n_meas, dtype=bool)
+    for j, i, d in zip(point.tolist(), meas.tolist(), Z.tolist()):
+        if not d < gate:
+            continue
+        inside_any[i] = True
+        if j not in nearest_meas or (d, i) < nearest_meas[j]:
+            nearest_meas[j] = (d, i)
+        if i not in nearest_point or (d, j) < nearest_point[i]:
+            nearest_point[i] = (d, j)
+    points, measurements = [], []
+    for j in sorted(nearest_meas):
+        i = nearest_meas[j][1]
+        if nearest_point[i][1] == j:
+            points.append(j)
+            measurements.append(i)
+            inside_any[i] = False  # matched, not ambiguous
+    return np.array(points, dtype=np.intp), np.array(measurements, dtype=np.intp), inside_any
+
+
+def near_stored_pairs(pairs, n_meas, exclusion_chi2, exclusion_px):
+    """Measurements with a pair within ``exclusion_chi2`` (Mahalanobis) or ``exclusion_px`` (M,)."""
+    near = np.zeros(n_meas, dtype=bool)
+    for i, d, d2 in zip(pairs.meas.tolist(), pairs.Z.tolist(), pairs.d2.tolist()):
+        if d < exclusion_chi2 or d2 < exclusion_px**2:
+            near[i] = True
+    return near
+
+
 def ekf_update(y, P_y, innovation, C_x, C_y, P_x, R_img):
     """Loop of :func:`ekf_update_one` -> y (N, D), P (N, D, D), ok (N,)."""
     y = np.asarray(y, dtype=float)
@@ -236,9 +288,9 @@ def loop_model() -> SimpleNamespace:
 # Names the mapper module imports from companion.mapper.matching / update, replaced for the loop run.
 MAPPER_FUNCTIONS = {
     "innovation_covariance": innovation_covariance,
-    "mahalanobis_distances": mahalanobis_distances,
-    "gate_and_match": gate_and_match,
-    "near_stored_features": near_stored_features,
+    "candidate_pairs": candidate_pairs,
+    "gate_and_match_pairs": gate_and_match_pairs,
+    "near_stored_pairs": near_stored_pairs,
     "ekf_update": ekf_update,
 }
 

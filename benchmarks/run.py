@@ -87,8 +87,8 @@ def parse_args(argv):
     p.add_argument("--no-daemon", action="store_true", help="skip the daemon run (simulator + companion run)")
     p.add_argument("--daemon-seconds", type=float, help="daemon run length after take-off (default 40, quick 8)")
     p.add_argument("--daemon-experiments", action="store_true",
-                   help="also run the daemon with sys.setswitchinterval(0.001) and with its mapper and render "
-                        "threads at SCHED_IDLE (does either cut the control jitter?)")
+                   help="also run the daemon with its mapper in a child process, and with the GIL switch interval "
+                        "at 1 ms (sys.setswitchinterval(0.001)): does either cut the control jitter?")
     p.add_argument("--profile", action="store_true", help="also print cProfile's top functions of the mapper step")
     return p.parse_args(argv)
 
@@ -190,9 +190,10 @@ def scaling_section(flight, plan: Plan) -> list:
 
 
 def profile_section(flight, plan: Plan, with_cprofile: bool) -> dict:
-    """Where the time goes, and the measured effect of the first proposal."""
-    print("\n== Where the time goes (timers around the functions a step calls; mean ms per frame) ==")
-    profiles = {n: mapper_bench.section_profile(flight, n, plan.profile_frames) for n in (50, 300)}
+    """Where the time goes (wall and this thread's CPU time), and the matching before and after issue 7."""
+    print("\n== Where the time goes (timers around the functions a step calls; mean CPU ms per frame) ==")
+    # CPU time of this thread: the shares do not depend on what other processes take from the core
+    profiles = {n: mapper_bench.section_profile(flight, n, plan.profile_frames, clock=time.thread_time) for n in (50, 300)}
     rows = []
     for label in profiles[50]["sections_ms"]:
         rows.append([label] + sum(([profiles[n]["sections_ms"].get(label, 0.0),
@@ -204,18 +205,19 @@ def profile_section(flight, plan: Plan, with_cprofile: bool) -> dict:
     for n, p in profiles.items():
         if p["not_found"]:
             print(f"  (not timed at {n}: {', '.join(p['not_found'])} - renamed in the mapper?)")
-    prop = {n: mapper_bench.distance_proposal(flight, n, 40 if plan.quick else 150) for n in (50, 300)}
-    print("\nproposal 1 measured: N x M distances + exclusion as now (einsum, (N, M, 2) temporaries) against the "
-          "same maths by components (benchmarks/mapper_bench.py:distances_by_components), same inputs:")
-    print(table(["features", "now median ms", "now p99", "by components med", "p99", "saved ms", "speedup", "max rel diff"],
-                [[str(n), c["current_ms"]["median"], c["current_ms"]["p99"], c["prototype_ms"]["median"],
-                  c["prototype_ms"]["p99"], c["saved_ms_median"], c["speedup"], f"{c['max_relative_difference']:.1e}"]
+    prop = {n: mapper_bench.matching_comparison(flight, n, 40 if plan.quick else 150) for n in (50, 300)}
+    print("\nmatching (eqs. 10-12 and the exclusion test): dense N x M matrices (as before issue 7) against the "
+          "candidate pairs the mapper now uses, same inputs, interleaved:")
+    print(table(["features", "dense median ms", "dense p99", "pairs median ms", "pairs p99", "saved ms", "speedup",
+                 "same decisions"],
+                [[str(n), c["dense_ms"]["median"], c["dense_ms"]["p99"], c["pairs_ms"]["median"],
+                  c["pairs_ms"]["p99"], c["saved_ms_median"], c["speedup"], c["identical_decisions"]]
                  for n, c in prop.items()]))
     if with_cprofile:
         for n in (50, 300):
             print(f"\ncProfile, {n} features, {plan.profile_frames} frames:")
             print(mapper_bench.cprofile_top(flight, n, plan.profile_frames))
-    return {"sections": profiles, "proposal_distances": prop}
+    return {"sections": profiles, "matching_dense_vs_pairs": prop}
 
 
 def loop_section(flight, plan: Plan) -> dict:
@@ -271,12 +273,12 @@ def daemon_section(plan: Plan, args) -> dict:
     out = {"default": daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print)}
     _print_daemon(out["default"])
     if args.daemon_experiments:
-        print("\n  again with the daemon's GIL switch interval at 1 ms (sys.setswitchinterval(0.001)):")
+        print("\n  again with the mapper in a child process (companion/mapper_process.py):")
+        out["mapper_process"] = daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print, mapper_process=True)
+        _print_daemon(out["mapper_process"])
+        print("\n  again with the GIL switch interval at 1 ms (sys.setswitchinterval(0.001)):")
         out["switch_interval_1ms"] = daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print, switch_interval_s=0.001)
         _print_daemon(out["switch_interval_1ms"])
-        print("\n  again with the mapper and render threads at SCHED_IDLE:")
-        out["idle_workers"] = daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print, worker_policy="idle")
-        _print_daemon(out["idle_workers"])
     return out
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 # name -> (module, one-line help)
@@ -39,6 +40,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # One BLAS / OpenMP thread, set before the subcommands' imports load NumPy (too late after):
+    # the service's matrix products are small, and idle OpenBLAS threads spinning on a 2-4 core
+    # board steal the core from the control loop (docs/performance.md). An explicit setting wins.
+    for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+        os.environ.setdefault(name, "1")
     parser = build_parser()
     args = parser.parse_args(argv)
     if not args.command:

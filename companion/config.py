@@ -55,8 +55,8 @@ class LinkConfig:
     nav_stream_rate_hz: float = _f(50.0, "Hz", 1.0, 400.0, "requested rate of navigation messages")
     heartbeat_timeout_s: float = _f(3.0, "s", 0.5, 60.0, "autopilot heartbeat silence that counts as link lost")
     reconnect_backoff_max_s: float = _f(5.0, "s", 0.1, 300.0)
-    signing_key_file: str = _f("", doc="MAVLink 2 signing key file (32 bytes or 64 hex chars); empty = no signing")
-    signing_required: bool = _f(False, doc="reject unsigned/badly signed messages")
+    signing_key_file: str = _f("", doc="MAVLink 2 signing key file (32 bytes or 64 hex chars, mode 600: refused if group/others may read it); empty = no signing")
+    signing_required: bool = _f(False, doc="reject unsigned messages (badly signed and replayed ones are always rejected)")
     connect_timeout_s: float = _f(3.0, "s", 0.1, 60.0, "TCP connect attempt limit")
     aux_stream_rate_hz: float = _f(5.0, "Hz", 0.1, 50.0, "requested rate of EKF_STATUS_REPORT, ESTIMATOR_STATUS, GPS_RAW_INT")
     timesync_rate_hz: float = _f(1.0, "Hz", 0.1, 10.0, "TIMESYNC round trips per second (SYSTEM_TIME is requested at the same rate)")
@@ -73,6 +73,9 @@ class NavConfig:
     position_sigma_floor_m: float = _f(0.3, "m", 0.0, 100.0)
     velocity_sigma_floor_mps: float = _f(0.1, "m/s", 0.0, 100.0)
     attitude_sigma_floor_deg: float = _f(0.5, "deg", 0.0, 45.0)
+    yaw_sigma_floor_deg: float = _f(0.0, "deg", 0.0, 90.0, "heading floor on top of attitude_sigma_floor_deg (0 = that floor alone); "
+                                    "ArduPilot sends no attitude covariance, so with it this is the heading sigma the mapper assumes "
+                                    "(config/sitl.yaml: the simulator's sim.nav_yaw_sigma_deg)")
     stale_after_s: float = _f(0.5, "s", 0.01, 10.0, "navigation older than this stops commanding")
     buffer_s: float = _f(5.0, "s", 0.1, 120.0, "history kept for interpolation at frame times")
     buffer_max_gap_s: float = _f(0.5, "s", 0.01, 60.0, "no interpolation across a gap in the navigation longer than this")
@@ -160,9 +163,10 @@ class TerrainConfig:
     max_spread_cells: int = _f(3, "cells", 0, 16, "largest spread radius around a point's own cell")
     min_height_sigma_m: float = _f(0.05, "m", 1e-4, 100.0, "floor on a point's height sigma (no point is exact)")
     max_horizontal_sigma_m: float = _f(2.0, "m", 0.01, 1e4, "a point whose horizontal sigma (largest axis) exceeds this cannot say which cell it is in: rejected")
-    gate_sigma: float = _f(3.0, "sigma", 0.5, 100.0, "a point further than this from a cell's estimate (innovation sigma) is rejected there")
-    gate_min_count: int = _f(2, "points", 1, 1_000_000, "the gate applies once a cell holds this much evidence")
-    reset_evidence: float = _f(3.0, "points", 0.1, 1e6, "rejected evidence, uncontradicted, after which a cell takes the new height")
+    gate_sigma: float = _f(3.0, "sigma", 0.5, 100.0, "a point this far above a cell's estimate (innovation sigma) is a higher surface: it waits for a second one to confirm it, then replaces the cell")
+    below_gate_sigma: float = _f(3.0, "sigma", 0.5, 100.0, "a point this far below a cell's estimate (innovation sigma) is a lower surface of the cell (a wall's face): ignored for the height, counted as disagreement (reset_evidence)")
+    gate_min_count: int = _f(2, "points", 1, 1_000_000, "the gates apply once a cell holds this much evidence")
+    reset_evidence: float = _f(20.0, "points", 0.1, 1e6, "points below a cell, with none agreeing in between, that bring it down to them (a wall's face sends many: keep it well above a few)")
     process_noise_m2: float = _f(1e-4, "m^2", 0.0, 100.0, "added to a cell's variance before each update, so the map can forget")
     max_abs_coordinate_m: float = _f(1e6, "m", 1.0, 1e8, "points further from the local origin are rejected as invalid")
 
@@ -180,8 +184,9 @@ class AvoidanceConfig:
     nominal_alt_m: float = _f(15.0, "m", -1e4, 1e4, "altitude to return to after an obstacle (up, local frame)")
     nominal_time_constant_s: float = _f(1.5, "s", 0.05, 60.0, "near the nominal altitude the return is exponential with this time constant")
     hover_speed_mps: float = _f(0.3, "m/s", 0.0, 10.0, "below this horizontal speed the look-ahead is a disc around the vehicle")
-    descend_known_fraction: float = _f(0.1, "", 0.0, 1.0, "descend only when at least this fraction of the cells within the miss distance below the vehicle is mapped (never push over into unseen terrain, e.g. a plain roof)")
+    descend_known_fraction: float = _f(0.03, "", 0.0, 1.0, "descend only when at least this fraction of the cells below the vehicle is mapped: those it flew over within the miss distance behind and either side (within the miss distance around at hover); never push over into unseen terrain, e.g. a plain roof, but one mapped cell in thirty is enough over sparsely mapped ground")
     unknown_fill_m: float = _f(5.0, "m", 0.0, 1000.0, "an unmapped cell is taken as high as the highest mapped cell within this along-track distance in the corridor")
+    height_margin_sigma: float = _f(2.0, "sigma", 0.0, 10.0, "a mapped cell counts as h + k sqrt(variance): the clearance is kept above the map's uncertainty too (0 = the estimate alone)")
     enabled: bool = _f(True, doc="false = command the nominal altitude only; the law is still evaluated and published (demo --no-avoid)")
 
 
@@ -219,7 +224,9 @@ class PersistenceConfig:
     """Map snapshots."""
 
     directory: str = _f("/var/lib/companion", doc="where map snapshots live")
-    snapshot_interval_s: float = _f(10.0, "s", 0.5, 3600.0)
+    snapshot_interval_s: float = _f(10.0, "s", 0.5, 3600.0, "at most this much of the map is lost to a crash (companion clock)")
+    keep_previous: bool = _f(True, doc="keep the snapshot before the newest as terrain.snapshot.prev (loaded if the newest is bad)")
+    warn_every_s: float = _f(60.0, "s", 1.0, 3600.0, "while snapshots fail: repeat the log line and STATUSTEXT at most this often")
 
 
 @dataclass(frozen=True, slots=True)
@@ -238,6 +245,7 @@ class SimConfig:
     physics_rate_hz: float = _f(400.0, "Hz", 50.0, 2000.0, "fixed physics step of the simulated vehicle (simulated time)")
     nav_rate_hz: float = _f(50.0, "Hz", 1.0, 400.0, "update rate of the navigation error, wind gusts and failsafe checks")
     origin_delay_s: float = _f(15.0, "s", 0.0, 600.0, "EKF origin (and GPS fix) this long after boot; no LOCAL_POSITION_NED before")
+    gps_delay_s: float = _f(0.0, "s", 0.0, 600.0, "ArduPilot: the EKF uses GPS (position estimate, LOCAL_POSITION_NED, arming in GUIDED) this long after its origin is set; real Copter 4.6 SITL: about 21 s (docs/sitl.md)")
     accel_h_mps2: float = _f(3.0, "m/s^2", 0.1, 20.0, "horizontal acceleration limit of the velocity reference")
     accel_v_mps2: float = _f(2.5, "m/s^2", 0.1, 20.0, "vertical acceleration limit of the velocity reference")
     speed_h_mps: float = _f(15.0, "m/s", 0.1, 50.0, "horizontal speed limit")

@@ -276,9 +276,15 @@ def free_tcp_port() -> int:
 
 def daemon_config(world, opts, parameterisation: str, tcp_port: int, zenoh_port: int, map_dir: Path) -> dict:
     """The service's configuration for one run (written to ``<run>/daemon.yaml``)."""
+    from companion.config import SimConfig
+
     c = world.circuit
+    sim = SimConfig()
     return {
         "link": {"connection": f"tcp:127.0.0.1:{tcp_port}"},
+        # The simulator (ArduPilot flavour) sends no attitude covariance: tell the service the attitude
+        # sigmas it injects, as config/sitl.yaml does (docs/mavlink.md, floors).
+        "nav": {"attitude_sigma_floor_deg": float(sim.nav_tilt_sigma_deg), "yaw_sigma_floor_deg": float(sim.nav_yaw_sigma_deg)},
         "camera": {"source": "synthetic", "rate_hz": opts.camera_rate},
         "mapper": {"parameterisation": parameterisation},
         "avoidance": {"clearance_m": float(world.clearance_m), "nominal_alt_m": float(c.altitude_agl_m),

@@ -96,6 +96,13 @@ GPS_FIX_TYPE_3D = 3
 UNIX_EPOCH_THRESHOLD_US = 10**15  # time_usec above this (year 2001) is UNIX time, below it is boot time
 QUATERNION_NORM_TOLERANCE = 1e-3
 POSITION_LIMIT_M = 1e7  # a local NED coordinate beyond this is corrupt, not a flight
+# A synchronised stamp this far after the message's arrival is corrupt: a message cannot come from
+# the future, and the time mapping is good to half the best round trips (ms on a wire; tens of ms of
+# clock time in a simulation sped up 10x on a loaded machine). This also bounds how long one corrupt
+# stamp that passes the CRC can hold up the (time-ordered) buffer.
+MAX_FUTURE_S = 0.25
+BASIS_SYNCHRONISED = "autopilot clock (synchronised)"
+BASIS_ARRIVAL = "arrival time (not synchronised)"
 ARDUPILOT_EARTH_RADIUS_M = 6378100.0  # ArduPilot's LOCATION_SCALING_FACTOR = R * pi / 180 * 1e-7
 
 # The messages this module reads (the link requests them).
@@ -283,15 +290,21 @@ class TruthPose:
 
 @dataclass(slots=True)
 class RejectionCounter:
-    """Counts of rejected inputs per reason (a bounded set of keys), with the last detail of each."""
+    """Counts of rejected inputs per reason (a bounded set of keys), with the last detail of each.
+
+    ``listener(reason, detail)``, if set, hears every rejection (the link logs them, rate-limited).
+    """
 
     counts: dict[str, int] = field(default_factory=dict)
     details: dict[str, str] = field(default_factory=dict)
+    listener: Callable[[str, str], None] | None = None
 
     def add(self, reason: str, detail: str = "") -> None:
         self.counts[reason] = self.counts.get(reason, 0) + 1
         if detail:
             self.details[reason] = detail
+        if self.listener is not None:
+            self.listener(reason, detail)
 
     def total(self) -> int:
         return sum(self.counts.values())
@@ -371,6 +384,12 @@ class NavAssembler:
     time_map: autopilot boot time (s) -> companion time (s), or None when not synchronised
         (e.g. :meth:`companion.timesync.TimeSync.to_companion`); without a mapping the arrival time
         is used and :attr:`time_basis` says so.
+
+    Time bases are never mixed: when the basis changes (arrival time -> synchronised, or back after
+    the time mapping was reset) the stored halves are dropped and :attr:`time_basis_changes` counts
+    it, so the link can clear its buffer too. A state stamped more than ``MAX_FUTURE_S`` after its
+    arrival is rejected (a corrupt stamp would otherwise sit at the head of the buffer and make every
+    genuine state after it look out of order).
     """
 
     def __init__(self, cfg: NavConfig | None = None, time_map: Callable[[float], float | None] | None = None) -> None:
@@ -394,6 +413,7 @@ class NavAssembler:
         self._home: tuple[float, float, float, np.ndarray] | None = None
         self._truth: TruthPose | None = None
         self.time_basis = "none"
+        self.time_basis_changes = 0
         self.last_covariance_blocks: dict[str, str] = {}
         self.superseded = 0
 
@@ -408,7 +428,9 @@ class NavAssembler:
         return np.r_[
             np.full(3, c.position_sigma_floor_m),
             np.full(3, c.velocity_sigma_floor_mps),
-            np.full(3, math.radians(c.attitude_sigma_floor_deg)),
+            math.radians(c.attitude_sigma_floor_deg),
+            math.radians(c.attitude_sigma_floor_deg),
+            math.radians(max(c.attitude_sigma_floor_deg, c.yaw_sigma_floor_deg)),  # heading: its own floor
         ]
 
     def _set_evidence(self, kind: str, ev: _Evidence) -> None:
@@ -423,15 +445,31 @@ class NavAssembler:
     # Time
     # ------------------------------------------------------------------------------------------
 
-    def _companion_time(self, t_remote_s: float | None, t_rx: float) -> float:
-        """Companion time of an autopilot boot-clock time; the arrival time when that is impossible."""
+    def _companion_time(self, kind: str, t_remote_s: float | None, t_rx: float) -> float | None:
+        """Companion time of an autopilot boot-clock time; the arrival time when that is impossible.
+
+        None (rejected, counted) when the mapped time lies more than ``MAX_FUTURE_S`` after arrival.
+        """
+        t, basis = t_rx, BASIS_ARRIVAL
         if t_remote_s is not None and t_remote_s > 0 and self.time_map is not None:
-            t = self.time_map(t_remote_s)
-            if t is not None and math.isfinite(t):
-                self.time_basis = "autopilot clock (synchronised)"
-                return float(t)
-        self.time_basis = "arrival time (not synchronised)"
-        return t_rx
+            mapped = self.time_map(t_remote_s)
+            if mapped is not None and math.isfinite(mapped):
+                t, basis = float(mapped), BASIS_SYNCHRONISED
+        if t > t_rx + MAX_FUTURE_S:
+            self._reject(kind, "timestamp in the future", f"{t - t_rx:.3f} s after arrival")
+            return None
+        if basis != self.time_basis:
+            if self.time_basis != "none":
+                self.time_basis_changes += 1
+            self.forget_state()
+            self.time_basis = basis
+        return t
+
+    def forget_state(self) -> None:
+        """Drop the stored position and attitude halves (their times belong to another time base)."""
+        self._pos = None
+        self._att = None
+        self._last_emitted_t = -math.inf
 
     def _time_usec_to_boot_s(self, time_usec: Any) -> float | None:
         """``time_usec`` (boot or UNIX, MAVLink lets the magnitude decide) -> boot seconds, or None."""
@@ -500,7 +538,9 @@ class NavAssembler:
         v = _floats(msg, "vx", "vy", "vz")
         if not (self._valid_vector(kind, "position", p) and self._valid_vector(kind, "velocity", v)):
             return None
-        t = self._companion_time(_get(msg, "time_boot_ms", 0) * 1e-3, t_rx)
+        t = self._companion_time(kind, _get(msg, "time_boot_ms", 0) * 1e-3, t_rx)
+        if t is None:
+            return None
         self._pos = _Position(t, p, v)
         return self._assemble(t, t_rx)
 
@@ -509,7 +549,9 @@ class NavAssembler:
         q = self._valid_quaternion(kind, _floats(msg, "q1", "q2", "q3", "q4"))
         if q is None:
             return None
-        t = self._companion_time(_get(msg, "time_boot_ms", 0) * 1e-3, t_rx)
+        t = self._companion_time(kind, _get(msg, "time_boot_ms", 0) * 1e-3, t_rx)
+        if t is None:
+            return None
         self._att = _Attitude(t, q, self._body_rates(kind, msg))
         return self._assemble(t, t_rx)
 
@@ -533,6 +575,9 @@ class NavAssembler:
             return None
         if R is not None:
             v = R @ v
+        t = self._companion_time(kind, self._time_usec_to_boot_s(_get(msg, "time_usec", 0)), t_rx)
+        if t is None:  # a corrupt stamp: nothing of this message is used
+            return None
         reset_counter = int(_get(msg, "reset_counter", 0))
         if self._odometry_reset_counter is not None and reset_counter != self._odometry_reset_counter:
             self.estimator_resets += 1
@@ -566,7 +611,6 @@ class NavAssembler:
             ev.vel = vel_cov if R is None else R @ vel_cov @ R.T
         self._set_evidence(kind, ev)
 
-        t = self._companion_time(self._time_usec_to_boot_s(_get(msg, "time_usec", 0)), t_rx)
         self._pos = _Position(t, p, v)
         self._att = _Attitude(t, q, self._body_rates(kind, msg))
         return self._assemble(t, t_rx)
@@ -870,6 +914,7 @@ class NavAssembler:
             "estimator_healthy": ok,
             "estimator": reason,
             "time_basis": self.time_basis,
+            "time_basis_changes": self.time_basis_changes,
             "estimator_resets": self.estimator_resets,
             "origin": None if self.origin is None else {"lat_deg": self.origin.lat_deg, "lon_deg": self.origin.lon_deg, "alt_m": self.origin.alt_m, "source": self.origin.source},
             "evidence_age_s": {k: round(now - ev.t_rx, 3) for k, ev in self._evidence.items()},

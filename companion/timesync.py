@@ -20,11 +20,17 @@ from two kinds of evidence, both pure numbers handed in by the link:
 ``jitter_s`` is the robust spread (1.4826 x median absolute deviation) of the per-sample offsets
 in the window: how much a single sample would have been off. ``rtt_s`` is the median RTT.
 
-An autopilot reboot restarts its boot clock: any remote time more than ``reboot_threshold_s``
-behind the latest one seen is taken as a reboot, the window is cleared and :attr:`reboots`
-counts it. A persistent jump of the offset (``jump_confirmations`` consecutive samples further
-than ``jump_threshold_s`` from the estimate, e.g. a different autopilot behind a router) also
-resets. Both clocks run at the same rate (the simulated autopilot uses the same speed-up), so the
+An autopilot reboot restarts its boot clock. Every remote stamp is checked against the clock seen
+so far (:meth:`check_remote_time`): the autopilot clock runs at our rate, so a stamp should lie
+near ``latest_remote + (t_local - latest_local)``. A stamp more than ``reboot_threshold_s`` behind
+the latest, or more than ``ahead_tolerance_s`` ahead of that expectation, is a discontinuity. One
+such stamp is an outlier (a corrupt or stray message, a packet delayed from before a reboot): it
+is rejected and counted, and the time base stays. ``jump_confirmations`` consecutive stamps that
+agree with each other (same ``t_local - t_remote`` within ``jump_threshold_s``) confirm it: behind
+= a reboot (:attr:`reboots`), ahead = the clock jumped (another autopilot behind a router); either
+way the window is cleared (:attr:`resets`). A persistent jump of the offset seen by round trips
+(``jump_confirmations`` consecutive samples further than ``jump_threshold_s`` from the estimate)
+also resets. Both clocks run at the same rate (the simulated autopilot uses the same speed-up), so the
 offset is modelled as a constant; drift of a few ppm over the window is below the jitter.
 """
 
@@ -56,7 +62,10 @@ class TimeSync:
     window: number of samples kept per kind (round trip / one-way).
     max_rtt_s: round trips slower than this are discarded (their error bound rtt/2 is useless).
     reboot_threshold_s: remote time going backwards by more than this means the autopilot rebooted.
-    jump_threshold_s / jump_confirmations: a persistent offset change resets the estimate.
+    ahead_tolerance_s: how far a stamp may run ahead of the remote clock's expected reading (message
+        latency varies: a stamp after a delayed one runs ahead by the delay).
+    jump_threshold_s / jump_confirmations: a persistent offset change resets the estimate; a
+        discontinuity of the remote clock needs this many consistent stamps in a row.
     """
 
     def __init__(
@@ -66,6 +75,7 @@ class TimeSync:
         reboot_threshold_s: float = 1.0,
         jump_threshold_s: float = 0.5,
         jump_confirmations: int = 3,
+        ahead_tolerance_s: float = 1.0,
     ) -> None:
         if window < 1:
             raise ValueError(f"timesync window must be >= 1, got {window}")
@@ -74,12 +84,17 @@ class TimeSync:
         self.reboot_threshold_s = float(reboot_threshold_s)
         self.jump_threshold_s = float(jump_threshold_s)
         self.jump_confirmations = int(jump_confirmations)
+        self.ahead_tolerance_s = float(ahead_tolerance_s)
         self.reboots = 0
+        self.clock_jumps = 0
         self.resets = 0
         self.rejected = 0
+        self.outliers = {"behind": 0, "ahead": 0}  # remote stamps rejected as discontinuities
         self._rt: deque[tuple[float, float]] = deque(maxlen=self.window)  # (offset_i, rtt_i)
         self._ow: deque[float] = deque(maxlen=self.window)  # t_recv - t_remote
         self._latest_remote: float | None = None
+        self._latest_local: float | None = None  # companion time at which _latest_remote was seen
+        self._discontinuity: list[float] = []  # t_local - t_remote of consecutive discontinuous stamps
         self._jumps = 0
         self._offset: float | None = None
         self._jitter: float | None = None
@@ -90,11 +105,15 @@ class TimeSync:
     # Evidence
     # ------------------------------------------------------------------------------------------
 
-    def observe_remote_time(self, t_remote: float) -> bool:
+    def observe_remote_time(self, t_remote: float, t_local: float | None = None) -> bool:
         """Note a remote (autopilot boot) time seen in any message; True if it reveals a reboot.
 
-        Cheap enough to call for every time-stamped message. On a reboot the estimate is cleared.
+        With ``t_local`` (the companion time of arrival) this is :meth:`check_remote_time`: a reboot
+        needs consistent confirmation. Without it (a caller that has no arrival time), any stamp
+        more than ``reboot_threshold_s`` behind the latest is taken as a reboot at once.
         """
+        if t_local is not None:
+            return self.check_remote_time(t_remote, t_local) == "reboot"
         latest = self._latest_remote
         if latest is not None and t_remote < latest - self.reboot_threshold_s:
             self.reboots += 1
@@ -105,6 +124,44 @@ class TimeSync:
             self._latest_remote = t_remote
         return False
 
+    def check_remote_time(self, t_remote: float, t_local: float) -> str:
+        """Classify an autopilot stamp seen at companion time ``t_local`` (cheap: call it for every one).
+
+        Returns "ok", "reboot" (confirmed: the estimate was cleared and this stamp starts the new
+        clock), "jump" (the clock jumped ahead, confirmed: cleared likewise), or "behind" / "ahead"
+        (an outlier, or a discontinuity not yet confirmed: the caller should not use the message).
+        """
+        if not (np.isfinite(t_remote) and np.isfinite(t_local)):
+            self.rejected += 1
+            return "behind"
+        latest, latest_local = self._latest_remote, self._latest_local
+        if latest is None or latest_local is None:
+            self._latest_remote, self._latest_local = t_remote, t_local
+            return "ok"
+        if t_remote < latest - self.reboot_threshold_s:
+            kind = "behind"
+        elif t_remote > latest + (t_local - latest_local) + self.ahead_tolerance_s:
+            kind = "ahead"
+        else:
+            self._discontinuity.clear()
+            if t_remote > latest:
+                self._latest_remote, self._latest_local = t_remote, t_local
+            return "ok"
+        offset = t_local - t_remote
+        if self._discontinuity and abs(offset - self._discontinuity[0]) > self.jump_threshold_s:
+            self._discontinuity.clear()  # not the same new clock as the previous outliers
+        self._discontinuity.append(offset)
+        if len(self._discontinuity) < self.jump_confirmations:
+            self.outliers[kind] += 1
+            return kind
+        if kind == "behind":
+            self.reboots += 1
+        else:
+            self.clock_jumps += 1
+        self.reset()
+        self._latest_remote, self._latest_local = t_remote, t_local
+        return "reboot" if kind == "behind" else "jump"
+
     def add_roundtrip(self, t_sent: float, t_remote: float, t_received: float) -> bool:
         """One TIMESYNC answer: our send time, the autopilot's time, our receive time (s).
 
@@ -114,7 +171,9 @@ class TimeSync:
         if not (np.isfinite(rtt) and np.isfinite(t_remote)) or rtt < 0 or rtt > self.max_rtt_s:
             self.rejected += 1
             return False
-        self.observe_remote_time(t_remote)
+        if self.check_remote_time(t_remote, t_received) in ("behind", "ahead"):
+            self.rejected += 1
+            return False
         offset_i = 0.5 * (t_sent + t_received) - t_remote
         if self._is_jump(offset_i, tolerance=0.5 * rtt):
             return True
@@ -127,7 +186,9 @@ class TimeSync:
         if not (np.isfinite(t_remote) and np.isfinite(t_received)):
             self.rejected += 1
             return
-        self.observe_remote_time(t_remote)
+        if self.check_remote_time(t_remote, t_received) in ("behind", "ahead"):
+            self.rejected += 1
+            return
         offset_i = t_received - t_remote
         if not self._rt and self._is_jump(offset_i, tolerance=0.0):
             return
@@ -142,6 +203,8 @@ class TimeSync:
         self._ow.clear()
         self._jumps = 0
         self._latest_remote = None
+        self._latest_local = None
+        self._discontinuity = []
         self._offset = self._jitter = self._rtt = None
         self._source = "none"
 
@@ -156,9 +219,9 @@ class TimeSync:
             return False
         self._jumps += 1
         if self._jumps >= self.jump_confirmations:
-            latest = self._latest_remote
+            latest = (self._latest_remote, self._latest_local)
             self.reset()
-            self._latest_remote = latest
+            self._latest_remote, self._latest_local = latest
             return False  # the caller adds this sample to the fresh window
         return True
 

@@ -29,9 +29,11 @@ its serial class needs pyserial (not a dependency), it selects MAVLink 1 or 2 th
 process-wide environment variable and dialect global, and it has no asyncio integration. Here
 the sockets are asyncio transports (UDP datagram endpoint, TCP stream, a non-blocking tty fd on
 ``loop.add_reader``), so reading never blocks the event loop and no thread is needed; pymavlink's
-generated MAVLink 2 ``ardupilotmega`` dialect does the encoding, CRC, parsing and signing. Parsing
-is robust: bad bytes become counted ``BAD_DATA`` (by reason, logged once per kind with rate
-limiting), never an exception.
+generated MAVLink 2 ``ardupilotmega`` dialect does the encoding, CRC and decoding. Framing is
+:class:`drivers.mavlink_framing.MavlinkFramer`, which resynchronises after every bad frame (pymavlink's
+robust parser drops up to 280 bytes after a stray start byte, valid frames included) and checks
+MAVLink 2 signatures itself: bad input becomes a counted rejection (by category, logged once per
+kind and then at most every 30 s), never an exception, and the valid frames around it get through.
 
 Everything runs on the event loop thread; only :attr:`nav_buffer` may be read from other threads.
 """
@@ -44,6 +46,7 @@ import logging
 import math
 import os
 import re
+import stat
 import termios
 import time
 from collections import deque
@@ -56,10 +59,11 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion.clock import Clock
-from companion.config import CompanionConfig
+from companion.config import CompanionConfig, ConfigError
 from companion.navbuffer import NavBuffer
 from companion.navigation import HANDLED_MESSAGES, NavAssembler, TruthPose
 from companion.timesync import TimeSync
+from drivers.mavlink_framing import MavlinkFramer, Rejected, SignatureCheck
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +109,10 @@ SEVERITIES = {name: value for value, name in ((v, e.name.removeprefix("MAV_SEVER
 STATUSTEXT_CHUNK = 50  # bytes per STATUSTEXT.text
 STATUSTEXT_MAX_CHUNKS = 5
 
-SIGNING_EPOCH_UNIX_S = 1420070400  # MAVLink 2 signing timestamps count 10 us units since 2015-01-01
+SIGNING_KEY_BYTES = 32
+# A signing key readable or writable by anyone but its owner is refused (as ssh refuses a private key).
+SIGNING_KEY_FORBIDDEN_MODE = 0o077
+IGNORED_SOURCES_KEPT = 16  # the status lists at most this many other systems/components heard
 
 
 def _result_name(value: int) -> str:
@@ -193,7 +200,7 @@ def _serial(spec: str, baud: int, text: str) -> Endpoint:
 # Transports (asyncio; the link gives them two callbacks)
 # --------------------------------------------------------------------------------------------
 
-OnBytes = Callable[[bytes], None]
+OnBytes = Callable[..., bool]  # (data, packet_end=False) -> a frame was accepted; packet_end: a whole datagram
 OnLost = Callable[[str], None]
 TCP_WRITE_BUFFER_LIMIT = 256 * 1024
 
@@ -267,9 +274,12 @@ class UdpTransport(Transport):
             self.peer = (e.host, e.port)
 
     def _received(self, data: bytes, addr: tuple) -> None:
-        if self.endpoint.kind == "udpin":
+        # A datagram carries whole frames (a truncated one ends here). udpin answers the last sender,
+        # but only one that sent an acceptable frame: line noise, or an unsigned or forged frame when
+        # signing is required, must not redirect our heartbeats and setpoints to its sender.
+        accepted = self.on_bytes(data, True)
+        if self.endpoint.kind == "udpin" and accepted:
             self.peer = addr
-        self.on_bytes(data)
 
     def write(self, data: bytes) -> bool:
         if self.peer is None:
@@ -518,22 +528,6 @@ class LogLimiter:
             self._last[key] = (last, suppressed + 1)
 
 
-def _wire_reason(reason: str) -> str:
-    """A bounded category for a pymavlink BAD_DATA reason."""
-    r = reason.lower()
-    for needle, category in (
-        ("crc", "bad CRC"),
-        ("prefix", "bad start byte"),
-        ("signature", "bad or missing signature"),
-        ("incompat", "unsupported incompat_flags"),
-        ("length", "bad length"),
-        ("unpack", "undecodable payload"),
-    ):
-        if needle in r:
-            return category
-    return "other decode error"
-
-
 @dataclass(slots=True)
 class StreamRequest:
     """One message the link asks for, and what became of the request."""
@@ -594,15 +588,22 @@ class AutopilotLink:
         self.cfg = cfg
         self.clock = clock or Clock()
         lc = cfg.link
-        self.endpoint = parse_connection(lc.connection, lc.baud)
+        try:
+            self.endpoint = parse_connection(lc.connection, lc.baud)
+        except ValueError as exc:
+            raise ConfigError(f"link.connection: {exc}") from exc
         self.timesync = TimeSync(reboot_threshold_s=1.0)
         self.assembler = NavAssembler(cfg.nav, time_map=self.timesync.to_companion)
         self.nav_buffer = NavBuffer(cfg.nav.buffer_s, cfg.nav.buffer_max_gap_s, cfg.nav.buffer_extrapolate_s)
         self.rates = RateMeter()
+        # _mav encodes (and signs) what we send; _framer decodes what we receive.
         self._mav = mavlink2.MAVLink(None, srcSystem=lc.source_system, srcComponent=lc.source_component)
-        self._mav.robust_parsing = True
-        self._setup_signing()
+        self.signing = self._setup_signing()
+        self._framer = MavlinkFramer(self.signing)
         self._limiter = LogLimiter()
+        self.assembler.rejections.listener = lambda reason, detail: self._limiter(
+            logging.WARNING, f"nav-{reason}", f"autopilot link: navigation input rejected ({reason}: {detail[:80]})"
+        )
 
         self._transport: Transport | None = None
         self._lost_event: asyncio.Event | None = None
@@ -625,6 +626,8 @@ class AutopilotLink:
             "HOME_POSITION": StreamRequest("HOME_POSITION", mavlink2.MAVLINK_MSG_ID_HOME_POSITION, 0.0),
         }
         self._seen_estimator_resets = 0
+        self._seen_time_resets = 0
+        self._seen_basis_changes = 0
         self._tlog: Any = None  # open binary file while recording telemetry
         self._tlog_anchor = (0.0, 0.0)  # (unix time, companion time) sampled together
         self._tlog_path: Path | None = None
@@ -632,12 +635,14 @@ class AutopilotLink:
 
         # Counters for the status.
         self.wire_errors: dict[str, int] = {}
+        self.time_rejections: dict[str, int] = {}
         self.handler_errors: dict[str, int] = {}
         self.last_error = ""
         self.bytes_rx = 0
         self.messages_rx = 0
         self.messages_tx = 0
         self.ignored_messages = 0
+        self.ignored_sources: dict[str, int] = {}
         self.connects = 0
         self.reconnects = 0
         self.link_losses = 0
@@ -651,27 +656,45 @@ class AutopilotLink:
     # Configuration helpers
     # ------------------------------------------------------------------------------------------
 
-    def _setup_signing(self) -> None:
+    def _setup_signing(self) -> SignatureCheck | None:
+        """MAVLink 2 signing from ``link.signing_key_file``; ConfigError naming the key for a bad file.
+
+        The file holds the 32-byte secret, raw or as 64 hex characters. Like ssh with a private key,
+        a key file that its group or others may read or write is refused: whoever reads it can
+        command the vehicle.
+        """
         path = self.cfg.link.signing_key_file
         if not path:
-            return
+            if self.cfg.link.signing_required:
+                raise ConfigError("link.signing_required is true but link.signing_key_file is empty: give the key file")
+            return None
+        where = f"link.signing_key_file {path!r}"
         try:
+            st = os.stat(path)
+            if not stat.S_ISREG(st.st_mode):
+                raise ConfigError(f"{where}: not a regular file")
+            if st.st_mode & SIGNING_KEY_FORBIDDEN_MODE:
+                raise ConfigError(
+                    f"{where}: permissions {stat.S_IMODE(st.st_mode):04o} are too open (readable or writable by group "
+                    f"or others); the key lets anyone command the vehicle: chmod 600 {path}"
+                )
             raw = Path(path).read_bytes()
         except OSError as exc:
-            raise ValueError(f"link.signing_key_file {path!r}: cannot read: {exc.strerror or exc}") from exc
+            raise ConfigError(f"{where}: cannot read: {exc.strerror or exc}") from exc
         text = raw.strip()
-        if len(raw) == 32:
+        if len(raw) == SIGNING_KEY_BYTES:
             key = raw
-        elif len(text) == 64 and re.fullmatch(rb"[0-9A-Fa-f]{64}", text):
+        elif len(text) == 2 * SIGNING_KEY_BYTES and re.fullmatch(rb"[0-9A-Fa-f]{64}", text):
             key = bytes.fromhex(text.decode())
         else:
-            raise ValueError(f"link.signing_key_file {path!r}: expected 32 raw bytes or 64 hex characters, got {len(raw)} bytes")
+            raise ConfigError(f"{where}: expected 32 raw bytes or 64 hex characters, got {len(raw)} bytes")
+        check = SignatureCheck(key, self.cfg.link.signing_required)
         s = self._mav.signing
         s.secret_key = key
         s.sign_outgoing = True
         s.link_id = 0
-        s.timestamp = int((time.time() - SIGNING_EPOCH_UNIX_S) * 100_000)
-        s.allow_unsigned_callback = None if self.cfg.link.signing_required else (lambda mav, msg_id: True)
+        s.timestamp = check.timestamp()
+        return check
 
     def _wanted_streams(self) -> dict[str, StreamRequest]:
         """Every message the link can use, at its rate; the autopilot's answers show which exist."""
@@ -805,6 +828,7 @@ class AutopilotLink:
                     backoff = min(2 * backoff, lc.reconnect_backoff_max_s)
                     continue
                 self._transport = transport
+                self._framer.reset()  # a partial frame from the previous connection is not continued
                 log.info("autopilot link: opened %s (local %s)", self.endpoint, transport.local_address)
                 reached = False
                 try:
@@ -1022,6 +1046,10 @@ class AutopilotLink:
         t = self._transport
         if t is None:
             return False
+        if self.signing is not None:
+            # The wall clock, never going back (pymavlink would only add 1 per message, and a stamp
+            # that falls behind real time is refused as stale by a receiver that restarts).
+            self._mav.signing.timestamp = self.signing.timestamp()
         try:
             buf = msg.pack(self._mav)
         except Exception as exc:  # a value out of its field's range: a bug in the caller, say which
@@ -1209,18 +1237,23 @@ class AutopilotLink:
     # Receiving
     # ------------------------------------------------------------------------------------------
 
-    def _on_bytes(self, data: bytes) -> None:
+    def _on_bytes(self, data: bytes, packet_end: bool = False) -> bool:
+        """Frame, check and dispatch received bytes; True if at least one frame was acceptable."""
         self.bytes_rx += len(data)
         try:
-            msgs = self._mav.parse_buffer(data) or []
-        except Exception as exc:  # robust parsing should not raise; if it does, drop the buffer and go on
-            self._count_wire(f"parser error: {type(exc).__name__}", str(exc))
-            self._mav.buf = bytearray()
-            self._mav.buf_index = 0
-            return
+            items = self._framer.feed(data, packet_end)
+        except Exception as exc:  # the framer does not raise; if it ever does, drop the buffer and go on
+            self._count_wire(f"framing error: {type(exc).__name__}", str(exc))
+            self._framer.reset()
+            return False
         now = self.clock.now()
-        for m in msgs:
-            if self._tlog is not None and m.get_type() != "BAD_DATA" and not m.get_type().startswith("UNKNOWN_"):
+        accepted = False
+        for m in items:
+            if isinstance(m, Rejected):
+                self._count_wire(m.category, m.detail)
+                continue
+            accepted = True
+            if self._tlog is not None:
                 self._log_packet(now, m.get_msgbuf())
             try:
                 self._dispatch(m, now)
@@ -1229,6 +1262,7 @@ class AutopilotLink:
                 self.handler_errors[kind] = self.handler_errors.get(kind, 0) + 1
                 self._error(f"autopilot link: error handling {kind}: {exc!r}", key=f"handler-{kind}")
                 log.debug("handler error", exc_info=True)
+        return accepted
 
     def _count_wire(self, category: str, detail: str) -> None:
         self.wire_errors[category] = self.wire_errors.get(category, 0) + 1
@@ -1241,12 +1275,6 @@ class AutopilotLink:
 
     def _dispatch(self, m: Any, now: float) -> None:
         kind = m.get_type()
-        if kind == "BAD_DATA":
-            self._count_wire(_wire_reason(str(m.reason)), str(m.reason))
-            return
-        if kind.startswith("UNKNOWN_"):
-            self._count_wire("unknown message id", kind)
-            return
         self.messages_rx += 1
         src = (m.get_srcSystem(), m.get_srcComponent())
         if src == (self.cfg.link.source_system, self.cfg.link.source_component):
@@ -1255,7 +1283,7 @@ class AutopilotLink:
             self._on_heartbeat(m, src, now)
             return
         if self._target is None or src != self._target:
-            self.ignored_messages += 1
+            self._ignore(src)
             return
         self.rates.tick(kind, now)
         if kind == "TIMESYNC":
@@ -1269,7 +1297,15 @@ class AutopilotLink:
             return
         boot_ms = getattr(m, "time_boot_ms", None)
         if boot_ms:
-            self._observe_remote_time(boot_ms * 1e-3, now)
+            verdict = self.timesync.check_remote_time(boot_ms * 1e-3, now)
+            self._check_reboot(now)
+            if verdict in ("behind", "ahead"):
+                # One stamp off the autopilot's clock is a stray or corrupt message, not a reboot (that
+                # takes several consistent ones): it must not move the time base or reach the state.
+                self.time_rejections[verdict] = self.time_rejections.get(verdict, 0) + 1
+                self._limiter(logging.WARNING, f"time-{verdict}",
+                              f"autopilot link: {kind} stamped {boot_ms} ms dropped: {verdict} the autopilot's clock (one stray stamp is not a reboot)")
+                return
         if kind == "SYSTEM_TIME" and m.time_boot_ms:
             self.timesync.add_one_way(m.time_boot_ms * 1e-3, now)
             self._check_reboot(now)
@@ -1278,14 +1314,30 @@ class AutopilotLink:
             if self.assembler.estimator_resets != self._seen_estimator_resets:
                 self._seen_estimator_resets = self.assembler.estimator_resets
                 self.nav_buffer.clear()  # the estimate jumped: never interpolate across a reset
-            if nav is not None:
-                self.nav_buffer.push(nav)
+            if self.assembler.time_basis_changes != self._seen_basis_changes:
+                self._seen_basis_changes = self.assembler.time_basis_changes
+                self.nav_buffer.clear()  # arrival-stamped and synchronised states are not mixed
+            if nav is not None and not self.nav_buffer.push(nav):
+                self._limiter(logging.WARNING, "nav-buffer", f"autopilot link: navigation state not buffered ({self.nav_buffer.rejected})")
 
-    def _observe_remote_time(self, t_remote: float, now: float) -> None:
-        self.timesync.observe_remote_time(t_remote)
-        self._check_reboot(now)
+    def _ignore(self, src: tuple[int, int]) -> None:
+        """A message from a system/component that is not our autopilot (GCS, gimbal, another vehicle)."""
+        self.ignored_messages += 1
+        key = f"{src[0]}/{src[1]}"
+        if key in self.ignored_sources or len(self.ignored_sources) < IGNORED_SOURCES_KEPT:
+            self.ignored_sources[key] = self.ignored_sources.get(key, 0) + 1
+        else:
+            self.ignored_sources["others"] = self.ignored_sources.get("others", 0) + 1
 
     def _check_reboot(self, now: float) -> None:
+        """React to a change of the autopilot's time base: a reboot, or a confirmed jump of its clock."""
+        if self.timesync.resets != self._seen_time_resets and self.timesync.reboots == self.reboots:
+            self._seen_time_resets = self.timesync.resets
+            log.warning("autopilot link: the autopilot's time mapping changed (its clock jumped); navigation history cleared")
+            self.assembler.forget_state()
+            self.nav_buffer.clear()  # stamps before and after the jump are not comparable
+            return
+        self._seen_time_resets = self.timesync.resets
         if self.timesync.reboots != self.reboots:
             self.reboots = self.timesync.reboots
             log.warning("autopilot link: the autopilot rebooted (its clock went backwards); resetting navigation and streams")
@@ -1304,21 +1356,22 @@ class AutopilotLink:
 
     def _on_heartbeat(self, m: Any, src: tuple[int, int], now: float) -> None:
         if m.autopilot == MAV_AUTOPILOT_INVALID or m.type in (MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER):
-            self.ignored_messages += 1
+            self._ignore(src)
             return  # a GCS, another companion, a gimbal or camera: not an autopilot
         wanted = self.cfg.link.target_system
         if wanted and src[0] != wanted:
-            self.ignored_messages += 1
+            self._ignore(src)
             return
         if self._target is not None and src != self._target:
             if self._state == "connected":
-                self.ignored_messages += 1
+                self._ignore(src)
                 return  # a second autopilot while ours is alive
             log.warning("autopilot link: switching from autopilot %s to %s", self._target, src)
             self._target = None
         if self._target is None:
             self._target = src
             self.timesync.reset()
+            self._seen_time_resets = self.timesync.resets
             self.assembler.reset()
             self.nav_buffer.clear()
             self._want_oneshots_again(now)
@@ -1344,7 +1397,7 @@ class AutopilotLink:
             log.warning("autopilot link: %s", self.last_error)
         log.info(
             "autopilot link: connected to system %d component %d (%s, %s, mode %s) over %s",
-            self._target[0], self._target[1], detected, mavlink2.enums["MAV_TYPE"][self._heartbeat.type].name, self.mode, self.endpoint,
+            self._target[0], self._target[1], detected, _mav_type_name(self._heartbeat.type), self.mode, self.endpoint,
         )  # fmt: skip
         if self._lost_since is not None:
             gap = now - self._lost_since
@@ -1361,7 +1414,9 @@ class AutopilotLink:
         t_sent = self._timesync_sent.pop(m.ts1, None)
         if t_sent is None:
             return  # an answer to somebody else's request (replies are broadcast)
-        self.timesync.add_roundtrip(t_sent, m.tc1 * 1e-9, now)
+        if not self.timesync.add_roundtrip(t_sent, m.tc1 * 1e-9, now):
+            self.time_rejections["round trip"] = self.time_rejections.get("round trip", 0) + 1
+            self._limiter(logging.WARNING, "time-round-trip", "autopilot link: a TIMESYNC answer was unusable (too slow, or off the autopilot's clock)")
         self._check_reboot(now)
 
     def _on_command_ack(self, m: Any) -> None:
@@ -1397,6 +1452,7 @@ class AutopilotLink:
         rejected.update({f"wire: {k}": v for k, v in self.wire_errors.items()})
         rejected.update({f"nav buffer: {k}": v for k, v in self.nav_buffer.rejected.items()})
         rejected.update({f"handler: {k}": v for k, v in self.handler_errors.items()})
+        rejected.update({f"time: {k}": v for k, v in self.time_rejections.items()})
         sp = self.last_setpoint
         return {
             "link": {
@@ -1409,7 +1465,7 @@ class AutopilotLink:
                     "system": self._target[0] if self._target else None,
                     "component": self._target[1] if self._target else None,
                     "flavour": self.flavour,
-                    "type": mavlink2.enums["MAV_TYPE"][hb.type].name.removeprefix("MAV_TYPE_") if hb.type in mavlink2.enums["MAV_TYPE"] else hb.type,
+                    "type": _mav_type_name(hb.type),
                     "mode": self.mode,
                     "armed": self.armed,
                     "system_status": hb.system_status,
@@ -1423,6 +1479,7 @@ class AutopilotLink:
                 "messages_rx": self.messages_rx,
                 "messages_tx": self.messages_tx,
                 "ignored_messages": self.ignored_messages,
+                "ignored_sources": dict(self.ignored_sources),
                 "dropped_writes": 0 if self._transport is None else self._transport.dropped_writes,
                 "last_error": self.last_error,
                 "telemetry_log": None if self._tlog is None else {"path": str(self._tlog_path), "records": self.tlog_records},
@@ -1472,6 +1529,12 @@ class AutopilotLink:
                 },
             },
             "truth": None if not self.cfg.link.request_sim_state else _truth_status(self.truth_pose(), now),
+            "signing": None if self.signing is None else {
+                "required": self.signing.required,
+                "accepted_signed": self.signing.accepted_signed,
+                "accepted_unsigned": self.signing.accepted_unsigned,
+                "streams": len(self.signing.streams),
+            },
         }
 
 
@@ -1501,6 +1564,11 @@ def statustext_chunks(text: str) -> list[bytes]:
     if len(chunks[-1]) == STATUSTEXT_CHUNK:
         chunks.append(b"")  # a NUL-terminated (empty) chunk marks the end
     return chunks
+
+
+def _mav_type_name(mav_type: int) -> str:
+    entry = mavlink2.enums["MAV_TYPE"].get(int(mav_type))
+    return entry.name.removeprefix("MAV_TYPE_") if entry is not None else f"TYPE_{mav_type}"
 
 
 def _ardupilot_mode_table(mav_type: int) -> dict[int, str]:

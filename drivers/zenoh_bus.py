@@ -244,12 +244,15 @@ class BusStats:
     query_errors: int
     open_attempts: int
     open_failures: int
+    links: int = 0
+    link_ups: int = 0
+    link_downs: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return {name: getattr(self, name) for name in self.__slots__}
 
 
-_COUNTERS = [f for f in BusStats.__slots__ if f not in ("connected", "tiles_cached")]
+_COUNTERS = [f for f in BusStats.__slots__ if f not in ("connected", "tiles_cached", "links")]
 
 TileProvider = Callable[[], Iterable[tuple[int, int, bytes]]]
 
@@ -278,6 +281,7 @@ class ZenohBus:
         self._stop = threading.Event()
         self._reopener: threading.Thread | None = None
         self._opened = False
+        self._link_up_seen: bool | None = None  # None until the first look at the links
 
     # ---- lifecycle -------------------------------------------------------------------------
 
@@ -584,6 +588,38 @@ class ZenohBus:
 
     # ---- introspection ---------------------------------------------------------------------
 
-    def stats(self) -> BusStats:
+    def links(self) -> list[str]:
+        """Remote locators of the open Zenoh links (peers or routers); empty while nobody is there."""
+        session = self._session
+        if session is None:
+            return []
+        try:
+            return [str(link.dst) for link in session.info.links()]
+        except zenoh.ZError:  # the session is closing underneath us
+            return []
+
+    @property
+    def link_up(self) -> bool:
+        """At least one peer or router is connected (a peer session alone is not a link)."""
+        return bool(self.links())
+
+    def _observe_links(self) -> int:
+        """Count open links; an up/down change is counted and logged once (polled by :meth:`stats`)."""
+        n = len(self.links())
         with self._lock:
-            return BusStats(connected=self._session is not None, tiles_cached=len(self._tiles), **self._n)
+            was_up = self._link_up_seen
+            self._link_up_seen = n > 0
+            if was_up is None or was_up == (n > 0):
+                return n
+            self._n["link_ups" if n > 0 else "link_downs"] += 1
+        if n > 0:
+            log.info("zenoh: link up (%s)", ", ".join(self.links()) or "?")
+        else:
+            log.warning("zenoh: link down (no peer or router connected; retrying %s)", list(self.cfg.connect) or "-")
+        return n
+
+    def stats(self) -> BusStats:
+        links = self._observe_links()
+        with self._lock:
+            return BusStats(connected=self._session is not None, tiles_cached=len(self._tiles), links=links,
+                            **self._n)

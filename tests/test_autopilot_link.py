@@ -559,6 +559,9 @@ def test_garbage_bytes_are_counted_and_nothing_stops():
             wire = {k: v for k, v in st["rejected"].items() if k.startswith("wire:")}
             print(f"\ngarbage: {wire}; rates {st['rates_hz'].get('LOCAL_POSITION_NED')} Hz")
             assert sum(wire.values()) > 10
+            # Line noise used to swallow the heartbeats around it and sometimes cost the link (pymavlink's robust
+            # parser drops whatever a stray start byte's length claims); the framer loses none, deterministically
+            # shown by tests/test_reliability_link.py::test_line_noise_costs_no_valid_frame_and_every_byte_is_accounted_for.
             assert link.state == "connected"
             peer.garbage = False
             t_before = link.nav_buffer.latest().t_s
@@ -742,6 +745,7 @@ def test_signed_link_rejects_unsigned_traffic_when_signing_is_required(tmp_path)
     key = bytes(range(32))
     key_file = tmp_path / "mavlink.key"
     key_file.write_text(key.hex() + "\n")
+    key_file.chmod(0o600)  # a key others may read is refused (tests/test_reliability_link.py)
 
     def sign(mav):
         mav.signing.secret_key = key
@@ -758,7 +762,7 @@ def test_signed_link_rejects_unsigned_traffic_when_signing_is_required(tmp_path)
         async with running(link):
             await asyncio.sleep(0.5)
             assert not link.connected
-            assert link.status()["rejected"].get("wire: bad or missing signature", 0) > 0
+            assert link.status()["rejected"].get("wire: unsigned message", 0) > 0
         await unsigned.stop()
 
         signed = Peer(clock, "ardupilot")
@@ -779,6 +783,7 @@ def test_signed_link_rejects_unsigned_traffic_when_signing_is_required(tmp_path)
 def test_bad_signing_key_file_is_a_clear_error(tmp_path):
     bad = tmp_path / "short.key"
     bad.write_text("abcd")
+    bad.chmod(0o600)
     with pytest.raises(ValueError, match="link.signing_key_file.*64 hex"):
         AutopilotLink(make_cfg("udpin:127.0.0.1:0", **{"link.signing_key_file": str(bad)}), Clock())
     with pytest.raises(ValueError, match="cannot read"):

@@ -188,24 +188,24 @@ def test_position_and_attitude_make_a_state_with_floors_only():
 def test_time_map_places_states_on_the_companion_clock_and_halves_are_carried():
     a = NavAssembler(CFG, time_map=lambda t: t + 100.0)
     yaw_rate = 0.5
-    a.update(aq(1000, rates=(0, 0, yaw_rate)), 0.0)
-    s = a.update(lpn(1040, v=(2.0, 0, 0)), 0.0)
+    a.update(aq(1000, rates=(0, 0, yaw_rate)), 101.01)  # arrival times: a few ms after the stamps
+    s = a.update(lpn(1040, v=(2.0, 0, 0)), 101.05)
     assert s.t_s == pytest.approx(101.04)
     # attitude carried 40 ms forward by its body rates
     assert quat_to_euler(s.quaternion_wxyz)[2] == pytest.approx(yaw_rate * 0.04, abs=1e-9)
-    s = a.update(aq(1060, rates=(0, 0, yaw_rate)), 0.0)
+    s = a.update(aq(1060, rates=(0, 0, yaw_rate)), 101.07)
     np.testing.assert_allclose(s.position_ned_m, [1 + 2.0 * 0.02, 2, -10], atol=1e-12)  # position carried 20 ms
     assert a.time_basis.startswith("autopilot clock")
 
 
 def test_halves_too_far_apart_are_not_combined_and_older_halves_are_superseded():
     a = NavAssembler(CFG, time_map=lambda t: t)
-    a.update(aq(1000), 0.0)
-    assert a.update(lpn(1000 + int(CFG.max_skew_s * 1000) + 50), 0.0) is None
+    a.update(aq(1000), 1.0)
+    assert a.update(lpn(1000 + int(CFG.max_skew_s * 1000) + 50), 1.2) is None
     b = NavAssembler(CFG, time_map=lambda t: t)
-    b.update(lpn(1000), 0.0)
-    assert b.update(aq(1010), 0.0) is not None
-    assert b.update(aq(1005), 0.0) is None and b.superseded == 1
+    b.update(lpn(1000), 1.0)
+    assert b.update(aq(1010), 1.02) is not None
+    assert b.update(aq(1005), 1.03) is None and b.superseded == 1
 
 
 def test_ardupilot_ekf_status_and_gps_model():
@@ -305,6 +305,19 @@ def test_floors_bound_tiny_reported_covariances():
     assert s.covariance_source == "ODOMETRY"
 
 
+def test_yaw_floor_raises_the_heading_sigma_only():
+    """nav.yaw_sigma_floor_deg: ArduPilot reports no attitude covariance, so the floors are the
+    sigmas the mapper assumes; the simulator injects 0.5 deg of tilt and 2 deg of yaw error."""
+    cfg = NavConfig(yaw_sigma_floor_deg=2.0)
+    a = NavAssembler(cfg)
+    s = a.update(odometry(1_000_000, pose=px4_diag21([1e-6] * 6), twist=px4_diag21([1e-6] * 6)), 1.0)
+    sig = np.sqrt(np.diag(s.covariance))
+    np.testing.assert_allclose(sig[6:9], np.radians([0.5, 0.5, 2.0]))
+    np.testing.assert_allclose(a.floor_sigmas[6:9], np.radians([0.5, 0.5, 2.0]))
+    # Below the attitude floor it changes nothing: the attitude floor applies to every axis.
+    np.testing.assert_allclose(NavAssembler(NavConfig(yaw_sigma_floor_deg=0.2)).floor_sigmas[6:9], np.radians([0.5] * 3))
+
+
 def test_rejected_covariances_fall_back_and_are_counted():
     a = NavAssembler(CFG)
     bad = np.eye(9)
@@ -359,13 +372,14 @@ def test_health_from_ekf_flags_names_the_problem():
 
 
 def test_unix_time_usec_needs_system_time():
-    a = NavAssembler(CFG, time_map=lambda t: t + 50.0)
+    a = NavAssembler(CFG, time_map=lambda t: t - 13.02)
     unix_us = 1_700_000_000_000_000
     s = a.update(odometry(unix_us), 7.0)
     assert s.t_s == 7.0  # cannot map yet: arrival time
     a.update(msg("SYSTEM_TIME", time_unix_usec=unix_us + 1_000_000, time_boot_ms=20_000), 7.5)
     s = a.update(odometry(unix_us + 2_000_000), 8.0)
-    assert s.t_s == pytest.approx(21.0 + 50.0)
+    assert s.t_s == pytest.approx(21.0 - 13.02)
+    assert a.time_basis_changes == 1  # arrival time -> synchronised
 
 
 def test_truth_pose_from_sim_state_and_origin_or_home():

@@ -163,10 +163,31 @@ def test_navigation_error_has_the_stationary_sigmas_correlation_times_and_consis
     rate = np.diff(e[:, 0]) / dt
     assert np.corrcoef(rate, e[1:, 3])[0, 1] > 0.99
     assert abs(np.corrcoef(e[:, 0], e[:, 3])[0, 1]) < 0.05
-    # attitude: first order, tau = 1 s -> R(tau) = 1/e
-    lag = int(round(1.0 / dt))
-    r = np.mean(e[:-lag, 6] * e[lag:, 6]) / np.var(e[:, 6])
-    assert abs(r - math.exp(-1)) < 0.1
+    # attitude: critically damped, w = 2 / tau = 2 /s -> R(1/w) = 2/e, R(tau) = 3/e^2
+    for lag_s, expected in ((0.5, 2 / math.e), (1.0, 3 / math.e**2)):
+        lag = int(round(lag_s / dt))
+        r = np.mean(e[:-lag, 6:] * e[lag:, 6:], axis=0) / np.var(e[:, 6:], axis=0)
+        assert np.all(np.abs(r - expected) < 0.12), (lag_s, r)
+
+
+def test_attitude_error_is_smooth_from_frame_to_frame():
+    """A real EKF's attitude error wanders over seconds; between two camera frames it moves by about
+    sigma * w * dt, not by the random-walk step sigma * sqrt(2 dt / tau) of a first-order process
+    (0.23 deg of yaw at 15 Hz for 2 deg and 10 s)."""
+    sigma_yaw, tau, dt = math.radians(2.0), 10.0, 1.0 / 15.0
+    spec = NavErrorSpec(sigma=(0.5, 0.5, 0.8, 0.1, 0.1, 0.1, math.radians(0.5), math.radians(0.5), sigma_yaw),
+                        att_tau_s=(tau,) * 3)
+    nav = GaussMarkovNavError(spec, np.random.default_rng(11))
+    yaw = []
+    for _ in range(30000):
+        nav.step(dt)
+        yaw.append(nav.e[8])
+    yaw = np.array(yaw)
+    assert abs(yaw.std() / sigma_yaw - 1) < 0.2  # same stationary sigma (the series is correlated: loose)
+    step_rms = np.sqrt(np.mean(np.diff(yaw) ** 2))
+    first_order_step = sigma_yaw * math.sqrt(2 * dt / tau)
+    assert step_rms < 0.2 * first_order_step
+    assert step_rms == pytest.approx(sigma_yaw * (2 / tau) * dt, rel=0.25)
 
 
 def test_nees_of_the_error_against_the_reported_covariance_is_chi_square_9():
@@ -293,14 +314,41 @@ def test_ardupilot_gps_accuracies_cover_the_position_error_and_test_ratios_stay_
 
 
 def test_ardupilot_refuses_guided_and_arming_without_a_position_estimate():
+    """As a real Copter 4.6 SITL: disarmed, GUIDED is accepted before GPS; arming in it is not, and
+    armed (STABILIZE) the switch to GUIDED is refused."""
     ap = ArduPilotCopter(replace(SimConfig(), origin_delay_s=30.0))
     link = _Link()
     ap.run_for(1.0)
-    assert _cmd(ap, link, mav.MAV_CMD_DO_SET_MODE, 1, GUIDED) == mav.MAV_RESULT_FAILED
     assert _cmd(ap, link, mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED  # STABILIZE needs no GPS
+    assert _cmd(ap, link, mav.MAV_CMD_DO_SET_MODE, 1, GUIDED) == mav.MAV_RESULT_FAILED   # armed: requires position
     assert _cmd(ap, link, mav.MAV_CMD_COMPONENT_ARM_DISARM, 0) == mav.MAV_RESULT_ACCEPTED
+    assert _cmd(ap, link, mav.MAV_CMD_DO_SET_MODE, 1, GUIDED) == mav.MAV_RESULT_ACCEPTED  # disarmed: any mode
+    assert _cmd(ap, link, mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_FAILED   # PreArm: Need Position Estimate
     assert ap.build(mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED) is None
     assert ap.build(mav.MAVLINK_MSG_ID_EKF_STATUS_REPORT).flags == 0x00A7
+
+
+def test_ardupilot_origin_comes_before_the_use_of_gps():
+    """Real 4.6 SITL order: origin (GPS_GLOBAL_ORIGIN and HOME_POSITION to every link) at 20 s, EKF
+    using GPS at 41 s; in between no LOCAL_POSITION_NED, EKF flags 0x00A7, no arming in GUIDED, and
+    REQUEST_MESSAGE(HOME_POSITION) before the origin is ACCEPTED with nothing sent."""
+    ap = ArduPilotCopter(replace(SimConfig(), origin_delay_s=2.0, gps_delay_s=3.0))
+    link = _Link()
+    ap.run_for(1.0)
+    assert _cmd(ap, link, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HOME_POSITION) == mav.MAV_RESULT_ACCEPTED
+    assert ap.build(mav.MAVLINK_MSG_ID_HOME_POSITION) is None and ap.build(mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN) is None
+    ap.run_for(1.5)  # t = 2.5 s: origin, no GPS use yet
+    assert ap.origin_set and not ap.position_valid
+    assert ap.build(mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN) is not None and ap.build(mav.MAVLINK_MSG_ID_HOME_POSITION) is not None
+    assert ap.build(mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED) is None
+    assert ap.build(mav.MAVLINK_MSG_ID_EKF_STATUS_REPORT).flags == 0x00A7
+    assert _cmd(ap, link, mav.MAV_CMD_DO_SET_MODE, 1, GUIDED) == mav.MAV_RESULT_ACCEPTED
+    assert _cmd(ap, link, mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_FAILED
+    ap.run_for(3.0)  # t = 5.5 s: using GPS
+    assert ap.position_valid
+    assert ap.build(mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED) is not None
+    assert ap.build(mav.MAVLINK_MSG_ID_EKF_STATUS_REPORT).flags == 0x033F
+    assert _cmd(ap, link, mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
 
 
 def test_malformed_setpoints_stop_guided_and_are_counted_never_raised():

@@ -127,3 +127,49 @@ def test_status_snapshot():
     roundtrips(ts, np.random.default_rng(6), 4)
     s = ts.status()
     assert s.source == "TIMESYNC" and s.samples == 4 and s.rtt_s > 0
+
+
+# ---- stamps checked against the autopilot clock: one stray stamp is not a reboot -------------
+
+
+def stamps(ts: TimeSync, t_local0: float, n: int, offset: float, step: float = 0.02) -> list[str]:
+    """n stamps of an autopilot clock with ``companion - autopilot = offset``, one every ``step`` s."""
+    return [ts.check_remote_time(t_local0 + i * step - offset, t_local0 + i * step) for i in range(n)]
+
+
+def test_a_single_stray_stamp_behind_or_ahead_is_rejected_and_the_time_base_stays():
+    ts = TimeSync()
+    rng = np.random.default_rng(7)
+    roundtrips(ts, rng, 8, t0=1000.0)
+    assert stamps(ts, 1008.0, 5, TRUE_OFFSET) == ["ok"] * 5
+    offset = ts.offset_s
+    assert ts.check_remote_time(1008.1 - TRUE_OFFSET - 50.0, 1008.1) == "behind"  # a packet from an older boot
+    assert ts.check_remote_time(1008.1 - TRUE_OFFSET + 3600.0, 1008.1) == "ahead"  # a corrupt stamp
+    assert stamps(ts, 1008.2, 5, TRUE_OFFSET) == ["ok"] * 5
+    assert ts.reboots == 0 and ts.clock_jumps == 0 and ts.offset_s == offset
+    assert ts.outliers == {"behind": 1, "ahead": 1}
+    # Stray stamps that do not agree with each other never add up to a reboot, even in a row.
+    assert [ts.check_remote_time(t, 1009.0) for t in (5.0, 300.0, 77.0, 600.0)] == ["behind"] * 4
+    assert ts.reboots == 0 and ts.synced
+
+
+def test_consistent_stamps_behind_confirm_a_reboot_and_ahead_a_clock_jump():
+    ts = TimeSync(jump_confirmations=3)
+    roundtrips(ts, np.random.default_rng(8), 8, t0=1000.0)
+    new_offset = 1010.0  # rebooted at companion time ~1010: its clock restarts near 0
+    assert stamps(ts, 1010.5, 3, new_offset) == ["behind", "behind", "reboot"]
+    assert ts.reboots == 1 and not ts.synced
+    assert stamps(ts, 1010.6, 3, new_offset) == ["ok"] * 3  # the new clock is the reference now
+    ts.add_one_way(1011.0 - new_offset - 0.001, 1011.0)
+    assert ts.offset_s == pytest.approx(new_offset, abs=0.002)
+    assert stamps(ts, 1012.0, 2, new_offset - 40.0) == ["ahead", "ahead"]  # a router now shows another autopilot
+    assert stamps(ts, 1012.1, 1, new_offset - 40.0) == ["jump"] and ts.clock_jumps == 1 and ts.reboots == 1
+
+
+def test_a_long_silence_is_not_a_jump_and_round_trips_off_the_clock_are_refused():
+    ts = TimeSync()
+    roundtrips(ts, np.random.default_rng(9), 8, t0=1000.0)
+    assert stamps(ts, 1100.0, 1, TRUE_OFFSET) == ["ok"]  # 90 s without a word (link lost): both clocks ran on
+    rejected = ts.rejected
+    assert not ts.add_roundtrip(1101.0, 1101.0 - TRUE_OFFSET + 500.0, 1101.002)  # a TIMESYNC answer 500 s ahead
+    assert ts.rejected == rejected + 1 and abs(ts.offset_s - TRUE_OFFSET) < 0.003

@@ -31,17 +31,30 @@ def patch_descriptors(gray: np.ndarray, uv: np.ndarray, size: int) -> np.ndarray
         return np.zeros((n, max(size, 0) ** 2), np.float32)
     r = size // 2
     h, w = gray.shape[:2]
-    cu = np.clip(np.rint(uv[:, 0]), 0, w - 1).astype(np.intp)
-    cv = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.intp)
+    centre = np.clip(np.rint(uv), 0, [w - 1, h - 1]).astype(np.intp)  # (N, 2) column, row
     off = np.arange(size) - r
-    rows = np.clip(cv[:, None] + off[None, :], 0, h - 1)
-    cols = np.clip(cu[:, None] + off[None, :], 0, w - 1)
-    patch = gray[rows[:, :, None], cols[:, None, :]].reshape(n, size * size).astype(np.float32)
+    lo, hi = centre.min(axis=0), centre.max(axis=0)
+    if lo.min() >= r and hi[0] <= w - 1 - r and hi[1] <= h - 1 - r and gray.flags.c_contiguous:
+        # every patch inside the image (the usual case): one gather by flat pixel index
+        flat = (centre[:, 1] * w + centre[:, 0])[:, None] + (off[:, None] * w + off[None, :]).reshape(-1)
+        patch = np.take(gray.reshape(-1), flat).astype(np.float32)
+    else:
+        rows = np.clip(centre[:, 1, None] + off[None, :], 0, h - 1)
+        cols = np.clip(centre[:, 0, None] + off[None, :], 0, w - 1)
+        patch = gray[rows[:, :, None], cols[:, None, :]].reshape(n, size * size).astype(np.float32)
     patch -= patch.mean(axis=1, keepdims=True)
     norm = np.linalg.norm(patch, axis=1, keepdims=True)
-    return np.where(norm > 1e-3, patch / np.maximum(norm, 1e-3), 0.0).astype(np.float32)
+    patch /= np.maximum(norm, 1e-3)
+    patch[~(norm[:, 0] > 1e-3)] = 0.0  # a flat patch (or none) correlates with nothing
+    return patch
 
 
 def correlation(templates: np.ndarray, descriptors: np.ndarray) -> np.ndarray:
     """Normalised cross-correlation (N, M) of templates (N, K) with descriptors (M, K), in [-1, 1]."""
     return templates @ descriptors.T
+
+
+def pair_correlation(templates: np.ndarray, descriptors: np.ndarray) -> np.ndarray:
+    """Normalised cross-correlation (P,) of paired rows: templates (P, K) with descriptors (P, K).
+    The candidate-pair form of :func:`correlation` (only the few pairs inside a gate are compared)."""
+    return np.einsum("pk,pk->p", templates, descriptors)

@@ -49,10 +49,10 @@ class FeatureDatabase:
         return int(self.active.sum())
 
     def active_slots(self) -> np.ndarray:
-        return np.flatnonzero(self.active)
+        return self.active.nonzero()[0]
 
     def free_slots(self) -> np.ndarray:
-        return np.flatnonzero(~self.active)
+        return (~self.active).nonzero()[0]
 
     def insert(
         self,
@@ -91,7 +91,7 @@ class FeatureDatabase:
         """+1 for ``matched`` slots, -1 for ``unmatched`` (visible) slots, clipped to [0, max]."""
         self.confidence[matched] += 1
         self.confidence[unmatched] -= 1
-        np.clip(self.confidence, 0, confidence_max, out=self.confidence)
+        np.minimum(np.maximum(self.confidence, 0, out=self.confidence), confidence_max, out=self.confidence)
 
     def clear(self) -> None:
         self.active[:] = False

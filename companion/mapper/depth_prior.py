@@ -29,8 +29,7 @@ def flat_ground_ranges(
     rays_ned = np.asarray(rays_ned, dtype=float).reshape(-1, 3)
     height = -float(origin_ned[2]) - ground_alt_m
     down = rays_ned[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ranges = np.where((down > 1e-9) & (height > 0.0), height / down, max_range_m)
+    ranges = np.divide(height, down, out=np.full(len(down), float(max_range_m)), where=(down > 1e-9) & (height > 0.0))
     return np.clip(ranges, min_range_m, max_range_m)
 
 

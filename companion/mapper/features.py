@@ -10,7 +10,8 @@ Pipeline for one grey frame (``H x W``, ``uint8``):
 1. ``harris_response``: OpenCV's Harris response ``R = det(M) - k tr(M)^2`` per pixel.
 2. ``candidate_maxima``: 3x3 local maxima of ``R`` above ``max(quality * R_best, floor)``,
    inside the valid region (image edges, a caller's mask and black borders eroded by the
-   margin). OpenCV does the image-wide work; NumPy only sees the few hundred maxima.
+   margin). One image-wide pass finds the pixels above the threshold (a few percent); the
+   local-maximum test then runs on those only.
 3. ``refine_corners``: sub-pixel corner positions of the strongest candidates (OpenCV's
    ``cornerSubPix``, Förstner's gradient-orthogonality least squares); a corner that moves out
    of the valid region is dropped.
@@ -24,6 +25,8 @@ and :class:`companion.geometry.PinholeCamera`'s convention).
 """
 
 from __future__ import annotations
+
+import math
 
 import cv2
 import numpy as np
@@ -183,24 +186,41 @@ def black_border_valid(depths, shape: tuple[int, int], margin: int, out: np.ndar
 
 
 def _close_pairs(xy: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
-    """All pairs ``(i, j)``, ``i < j``, of points ``xy (K, 2)`` closer than ``d``.
+    """All pairs ``(i, j)``, ``i < j``, of finite points ``xy (K, 2)`` closer than ``d``.
 
-    With the points sorted by ``x``, the partners of a point lie in one contiguous run
-    (``|dx| <= d``) found by ``searchsorted``; only those runs are tested, not all ``K^2`` pairs."""
+    The points are binned into square cells of side ``c >= d``, so two points closer than ``d``
+    are in the same or adjacent cells. The cells are numbered row by row and counted, so the
+    points of the three cells ``cx - 1 .. cx + 1`` of a row are one run of the points sorted by
+    cell, found by two look-ups in the running count: each point meets only the points of its
+    3 x 3 cells (a few), not all ``K``."""
+    if not math.isfinite(xy.sum()):  # (a finite sum: every point finite) a point with no position is close to nothing
+        idx = np.flatnonzero(np.isfinite(xy).all(axis=1))
+        src, dst = _close_pairs(xy[idx], d) if len(idx) else (idx, idx)
+        return idx[src], idx[dst]
     x, y = xy[:, 0], xy[:, 1]
-    order = np.argsort(x, kind="stable")
-    xs = x[order]
-    # inclusive run |dx| <= d (never empty: it holds the point itself); the exact test follows
-    start = np.searchsorted(xs, x - d, side="left")
-    count = np.searchsorted(xs, x + d, side="right") - start
-    src = np.repeat(np.arange(len(xy)), count)
+    x0, y0 = float(x.min()), float(y.min())
+    # cells no smaller than d, and at most 256 per axis (plus a spare one each side): the count
+    # table stays small whatever the spread of the points
+    c = max(d, (float(x.max()) - x0) / 256, (float(y.max()) - y0) / 256)
+    cxy = ((xy - (x0, y0)) / c).astype(np.intp) + 1
+    cx, cy = cxy[:, 0], cxy[:, 1]
+    ncx = int(cx.max()) + 2
+    cell = cy * ncx + cx
+    order = np.argsort(cell, kind="stable")
+    run_start = np.zeros(ncx * (int(cy.max()) + 2) + 1, np.intp)  # points in cells before each cell
+    np.cumsum(np.bincount(cell, minlength=len(run_start) - 1), out=run_start[1:])
+    # for each point, the rows cy - 1, cy, cy + 1: first cell cx - 1, three cells long (3K,)
+    first_cell = (cell[None, :] + np.array([[-ncx - 1], [-1], [ncx - 1]])).reshape(-1)
+    start = run_start[first_cell]
+    count = run_start[first_cell + 3] - start
+    src = np.repeat(np.arange(3 * len(xy)) % len(xy), count)
     first = np.cumsum(count) - count
     dst = order[np.arange(src.size) - np.repeat(first - start, count)]
-    keep = src < dst
+    keep = (src < dst).nonzero()[0]  # indices, then gathers (faster than boolean indexes)
     src, dst = src[keep], dst[keep]
     dx, dy = x[src] - x[dst], y[src] - y[dst]
     # squares are cheaper than hypot, but d * d underflows for absurdly small d
-    close = dx * dx + dy * dy < d * d if d > 1e-100 else np.hypot(dx, dy) < d
+    close = (dx * dx + dy * dy < d * d if d > 1e-100 else np.hypot(dx, dy) < d).nonzero()[0]
     return src[close], dst[close]
 
 
@@ -314,7 +334,7 @@ def refine_corners(gray: np.ndarray, xy0: np.ndarray, window: int) -> np.ndarray
     re-centred. Needed because the Harris peak of a blurred L corner sits ~1-2 px inside it.
     A point that would leave its window is left where it was (OpenCV's rule).
     """
-    pts = xy0.astype(np.float32).reshape(-1, 1, 2)
+    pts = np.array(xy0, dtype=np.float32).reshape(-1, 1, 2)  # a copy: refined in place
     cv2.cornerSubPix(gray, pts, (window, window), (-1, -1), _SUBPIX_CRITERIA)
     return pts.reshape(-1, 2).astype(np.float64)
 
@@ -348,16 +368,10 @@ class HarrisDetector:
         shape = (self.height, self.width)
         self._gray = np.empty(shape, np.uint8)  # BGR -> grey target
         self._response = np.empty(shape, np.float32)
-        self._dilated = np.empty(shape, np.float32)
         self._border_valid = np.empty(shape, np.uint8)
         self._border_depths: tuple[np.ndarray, ...] | None = None  # last black border seen
         self._border_mask: np.ndarray | None = None
-        # The candidate mask lives in a buffer padded to whole 8-byte words so that its non-zero
-        # pixels can be found word by word (candidates are sparse).
-        n = self.height * self.width
-        self._words = np.zeros((n + 7) // 8, np.uint64)
-        self._cand = self._words.view(np.uint8)[:n].reshape(shape)
-        self._kernel3 = np.ones((3, 3), np.uint8)
+        self._above = np.zeros(shape, bool)  # pixels above the threshold
         self._static_valid = None
         if mask is not None:
             valid = _erode(_as_mask(mask, shape), self.margin)
@@ -367,6 +381,7 @@ class HarrisDetector:
         # Image-edge margin for the sub-pixel positions: in_image semantics (u >= border_px).
         self._edge = float(border_px)
         self.n_candidates = 0  # local maxima above threshold in the last frame (diagnostics)
+        self._first_batch = _first_batch(cfg)  # strongest candidates refined first (adapted per frame)
 
     # -- pipeline steps, in order -------------------------------------------------------------
 
@@ -401,34 +416,49 @@ class HarrisDetector:
         threshold = max(self.cfg.harris_quality * best, self.cfg.harris_min_response)
         if not best > 0.0 or best < threshold:
             return np.zeros(0, np.int64), np.zeros(0, np.float32)
-        # R >= max(3x3 neighbourhood, just above the threshold): a local maximum strictly above
-        # it (so a flat response, R == threshold == 0, is never a corner)
-        D = cv2.dilate(R, self._kernel3, dst=self._dilated)
-        cv2.max(D, np.float64(np.nextafter(np.float32(threshold), np.float32(np.inf))), dst=D)
-        cand = self._cand
-        cv2.compare(R, D, cv2.CMP_GE, dst=cand)
+        # Strictly above the threshold (so a flat response, R == threshold == 0, is never a
+        # corner), in float32 as R is, outside the top and bottom margins.
+        above = self._above
+        np.greater(R, np.float32(threshold), out=above)
+        above[:m] = False
+        above[H - m :] = False
+        flat = above.reshape(-1).nonzero()[0]  # raster order
+        # 3x3 local maximum: R >= each of the 8 neighbours. Left and right first (about two
+        # thirds of the pixels above the threshold fail those), without a look-up: a neighbour
+        # below the threshold is below R here, and one above it is the next set pixel in raster
+        # order. Then the other six on the rest. Every neighbour index is inside the frame (rows
+        # m..H-m-1, m >= 2); a pixel in the side margins may compare with a pixel of the next or
+        # previous row and is dropped below anyway.
+        Rf = R.reshape(-1)
+        value = Rf[flat]
+        keep = np.ones(len(flat), bool)
+        run = flat[1:] == flat[:-1] + 1  # pixel k + 1 is pixel k's right neighbour
+        keep[1:] &= ~run | (value[1:] >= value[:-1])
+        keep[:-1] &= ~run | (value[:-1] >= value[1:])
+        # (indices of the kept, then a gather: a boolean index over an irregular mask is slower)
+        kept = keep.nonzero()[0]
+        flat, value = flat[kept], value[kept]
+        keep = (value >= Rf[flat - W]) & (value >= Rf[flat + W])
+        for offset in (-W - 1, -W + 1, W - 1, W + 1):
+            keep &= value >= Rf[flat + offset]
+        x = flat % W
+        keep &= (x >= m) & (x < W - m)
         if valid is not None:
-            cv2.bitwise_and(cand, valid, dst=cand)
-        cand[:m] = 0
-        cand[H - m :] = 0
-        cand[:, :m] = 0
-        cand[:, W - m :] = 0
-        # Non-zero pixels: first the non-zero 8-byte words, then the bytes inside them (1-D
-        # bool nonzero throughout: NumPy's fast path; candidates are a small fraction).
-        words = (self._words != 0).nonzero()[0]
-        inside = (self._words[words].view(np.uint8) != 0).nonzero()[0]
-        flat = words[inside >> 3] * 8 + (inside & 7)
-        return flat, R.reshape(-1)[flat]
+            keep &= valid.reshape(-1)[flat] != 0
+        kept = keep.nonzero()[0]
+        return flat[kept], value[kept]
 
     def refine(self, gray: np.ndarray, flat: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Sub-pixel positions ``(N, 2)`` of the candidates at flat pixel indices ``(N,)`` and
         ``inside (N,)``: ``False`` where the refined corner lies outside the valid region (the
         true corner is in the margin: not a feature)."""
         y0, x0 = np.divmod(flat, self.width)
-        xy0 = np.column_stack([x0, y0])
         w = self.cfg.subpix_window_px
-        if w <= 0 or len(xy0) == 0:
-            return xy0.astype(np.float64), np.ones(len(xy0), bool)
+        if w <= 0 or len(flat) == 0:
+            return np.column_stack([x0, y0]).astype(np.float64), np.ones(len(flat), bool)
+        xy0 = np.empty((len(flat), 2), np.float32)  # integer pixels, exact in float32
+        xy0[:, 0] = x0
+        xy0[:, 1] = y0
         xy = refine_corners(gray, xy0, w)
         e = self._edge
         inside = (xy[:, 0] >= e) & (xy[:, 0] <= self.width - 1 - e) & (xy[:, 1] >= e) & (xy[:, 1] <= self.height - 1 - e)
@@ -459,14 +489,19 @@ class HarrisDetector:
         # Refine first, then select on the refined positions, so that every rule holds for what
         # is returned. Only the strongest T candidates are refined; as in select_features, more
         # are taken (and only those refined) when they cannot fill max_detections.
+        # The first batch is what the previous frame needed plus a margin (consecutive frames are
+        # alike): one refinement and one selection pass for most frames. The result does not
+        # depend on the batch size (the decisions for the strongest T do not depend on weaker ones).
         cfg, K = self.cfg, len(flat)
-        T = min(K, _first_batch(cfg))
+        T = min(K, self._first_batch)
         order = strongest(score, T)
         uv, inside = self.refine(gray, flat[order], valid)
         while True:
             ok = np.flatnonzero(inside)
             keep = ok[select_ordered(uv[ok], cfg, self.width, self.height)]
             if len(keep) >= cfg.max_detections or T == K:
+                needed = int(keep[-1]) + 1 if len(keep) >= cfg.max_detections else K
+                self._first_batch = max(64, needed + needed // 8 + 8)
                 return uv[keep], score[order[keep]].astype(np.float64)
             # take as many more as this batch's yield says are needed (refining costs ~1 us each)
             done = T

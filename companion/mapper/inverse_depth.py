@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from companion.geometry import PAPER_TO_OPENCV, PinholeCamera, skew
-from companion.mapper.projection import CameraPose, camera_ray_from_pixel, pixel_jacobian
+from companion.mapper.projection import CameraPose, camera_ray_from_pixel, pixel_from_camera_vector, pixel_jacobian
 
 STATE_DIM = 6
 ANCHOR = slice(0, 3)
@@ -39,14 +39,24 @@ def reference_rotation(R_nc: np.ndarray) -> np.ndarray:
 def direction_vector(psi: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """``m(psi, theta)`` of eq. 3 in the reference frame: (N,), (N,) -> unit vectors (N, 3)."""
     st, ct = np.sin(theta), np.cos(theta)
-    return np.stack([st, ct * np.sin(psi), ct * np.cos(psi)], axis=-1)
+    m = np.empty(np.shape(psi) + (3,))
+    m[..., 0] = st
+    m[..., 1] = ct * np.sin(psi)
+    m[..., 2] = ct * np.cos(psi)
+    return m
 
 
 def direction_derivatives(psi: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``dm/dpsi`` and ``dm/dtheta`` (N, 3) each."""
     st, ct, sp, cp = np.sin(theta), np.cos(theta), np.sin(psi), np.cos(psi)
-    dm_dpsi = np.stack([np.zeros_like(psi), ct * cp, -ct * sp], axis=-1)
-    dm_dtheta = np.stack([ct, -st * sp, -st * cp], axis=-1)
+    d = np.empty((2,) + np.shape(psi) + (3,))  # one allocation for both
+    dm_dpsi, dm_dtheta = d[0], d[1]
+    dm_dpsi[..., 0] = 0.0
+    dm_dpsi[..., 1] = ct * cp
+    dm_dpsi[..., 2] = -ct * sp
+    dm_dtheta[..., 0] = ct
+    dm_dtheta[..., 1] = -st * sp
+    dm_dtheta[..., 2] = -st * cp
     return dm_dpsi, dm_dtheta
 
 
@@ -70,7 +80,10 @@ def angle_jacobian(psi: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """
     dm_dpsi, dm_dtheta = direction_derivatives(psi, theta)
     ct = np.cos(theta)
-    return np.stack([dm_dpsi / (ct * ct)[:, None], dm_dtheta], axis=1)
+    A = np.empty((len(psi), 2, 3))
+    np.divide(dm_dpsi, (ct * ct)[:, None], out=A[:, 0])
+    A[:, 1] = dm_dtheta
+    return A
 
 
 def world_direction(y: np.ndarray, R_ref: np.ndarray) -> np.ndarray:
@@ -94,7 +107,7 @@ def measurement_model(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Eqs. 3-4: predicted ideal pixels (N, 2) (NaN behind the camera) and ``h^c`` (N, 3)."""
     h_c = camera_vector(y, R_ref, pose)
-    return camera.project(h_c), h_c
+    return pixel_from_camera_vector(h_c, camera), h_c
 
 
 def measurement_jacobian(
@@ -163,7 +176,7 @@ def initialise_features(
     n = len(h)
     if R_ref is None:
         R_ref = np.broadcast_to(reference_rotation(pose.R_nc), (n, 3, 3)).copy()
-    norm = np.linalg.norm(h, axis=1)
+    norm = np.sqrt((h * h).sum(axis=1))  # np.linalg.norm(h, axis=1), without its wrapper
     m_w = (h / norm[:, None]) @ pose.R_nc.T
     m_ref = np.einsum("nji,nj->ni", R_ref, m_w)
     psi, theta = angles_from_vector(m_ref)
@@ -176,7 +189,7 @@ def initialise_features(
     y[:, RHO] = 1.0 / ranges
 
     A = angle_jacobian(psi, theta)  # (N, 2, 3)
-    A_ref = A @ np.swapaxes(R_ref, 1, 2)  # d(psi, theta)/d(m_world), (N, 2, 3)
+    A_ref = A @ R_ref.transpose(0, 2, 1)  # d(psi, theta)/d(m_world), (N, 2, 3)
 
     J_z = np.zeros((n, STATE_DIM, 2))
     J_z[:, PSI:THETA + 1, :] = (A_ref @ pose.R_nc @ dh_dz) / norm[:, None, None]
@@ -186,9 +199,9 @@ def initialise_features(
     J_x[:, ANCHOR, 3:6] = -skew(pose.p_c - pose.p)  # lever arm R_nb t_bc rotates with the body
     J_x[:, PSI:THETA + 1, 3:6] = -A_ref @ skew(m_w)
 
-    P = J_z @ R_img @ np.swapaxes(J_z, 1, 2) + J_x @ P_x @ np.swapaxes(J_x, 1, 2)
+    P = J_z @ R_img @ J_z.transpose(0, 2, 1) + J_x @ P_x @ J_x.transpose(0, 2, 1)
     P[:, RHO, RHO] += sigma_rho**2
-    return y, 0.5 * (P + np.swapaxes(P, 1, 2)), R_ref
+    return y, 0.5 * (P + P.transpose(0, 2, 1)), R_ref
 
 
 def navigation_frame_jacobian(y: np.ndarray, R_ref: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -204,7 +217,7 @@ def navigation_frame_jacobian(y: np.ndarray, R_ref: np.ndarray, p: np.ndarray) -
     y = np.asarray(y, dtype=float)
     n = len(y)
     m_w = world_direction(y, R_ref)
-    A_ref = angle_jacobian(y[:, PSI], y[:, THETA]) @ np.swapaxes(R_ref, 1, 2)
+    A_ref = angle_jacobian(y[:, PSI], y[:, THETA]) @ R_ref.transpose(0, 2, 1)
     J = np.zeros((n, STATE_DIM, 6))
     J[:, ANCHOR, 0:3] = np.eye(3)
     J[:, ANCHOR, 3:6] = -skew(y[:, ANCHOR] - np.asarray(p, dtype=float))
@@ -236,8 +249,7 @@ def point_from_state(y: np.ndarray, R_ref: np.ndarray) -> tuple[np.ndarray, np.n
 def depth_from_origin(y: np.ndarray, R_ref: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """Depth (N,) from the anchor, ``1 / rho`` (``inf`` where ``rho <= 0``); ``origin`` unused."""
     rho = np.asarray(y, dtype=float)[:, RHO]
-    with np.errstate(divide="ignore"):
-        return np.where(rho > 0, 1.0 / np.maximum(rho, 1e-300), np.inf)
+    return np.divide(1.0, np.maximum(rho, 1e-300), out=np.full(len(rho), np.inf), where=rho > 0)
 
 
 def relative_depth_sigma(y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin: np.ndarray) -> np.ndarray:
@@ -247,8 +259,7 @@ def relative_depth_sigma(y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin
     """
     rho = np.asarray(y, dtype=float)[:, RHO]
     sigma = np.sqrt(np.maximum(P[:, RHO, RHO], 0.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(rho > 0, sigma / rho, np.inf)
+    return np.divide(sigma, rho, out=np.full(len(rho), np.inf), where=rho > 0)
 
 
 def normalise_state(y: np.ndarray) -> np.ndarray:

@@ -8,15 +8,17 @@ indices -> convergence (relative and absolute depth sigma) -> initialise unmatch
 (eqs. 13-17) into free or replaceable slots. Converged features come out as
 :class:`~companion.messages.TerrainPoints`.
 
-Emission rule: a feature is emitted once when it first converges, and once more, with its final
-(better) estimate, when it leaves the database (out of view or replaced) if it had converged. Its
-id is the same both times, so the terrain map can replace the first contribution with the second.
+Emission rule: a feature is emitted once, when it first converges (the earliest warning for the
+avoidance law). It is not emitted again with its later estimate when it leaves the database: the
+terrain map fuses points as independent evidence, and the same feature twice is not (it halved the
+variance of the cells it built and let one feature confirm its own higher surface; docs/terrain.md).
 
 The core is pure: no I/O, no logging; everything worth knowing is counted in :class:`MapperStep`.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import ModuleType
@@ -26,14 +28,14 @@ import numpy as np
 from companion.config import MapperConfig
 from companion.geometry import CameraMount, PinholeCamera, skew
 from companion.mapper import cartesian, inverse_depth
-from companion.mapper.appearance import correlation, patch_descriptors
+from companion.mapper.appearance import pair_correlation, patch_descriptors
 from companion.mapper.database import FeatureDatabase
 from companion.mapper.depth_prior import DepthPrior, prior_ranges
 from companion.mapper.matching import (
-    gate_and_match,
+    candidate_pairs,
+    gate_and_match_pairs,
     innovation_covariance,
-    mahalanobis_distances,
-    near_stored_features,
+    near_stored_pairs,
 )
 from companion.mapper.projection import CameraPose, camera_ray_from_pixel
 from companion.mapper.update import ekf_update
@@ -46,6 +48,13 @@ PARAMETERISATIONS: dict[str, ModuleType] = {"inverse_depth": inverse_depth, "car
 
 def _empty_ids() -> np.ndarray:
     return np.zeros(0, dtype=np.int64)
+
+
+def _in_image(uv: np.ndarray, camera: PinholeCamera) -> np.ndarray:
+    """``camera.in_image(uv)`` (N,) bool (NaN and inf are outside) without its error-state context,
+    which costs more than the test on a few hundred points."""
+    u, v = uv[:, 0], uv[:, 1]
+    return (u >= 0.0) & (u <= camera.width - 1) & (v >= 0.0) & (v <= camera.height - 1)
 
 
 def _concatenate(t_s: float, parts: list[TerrainPoints]) -> TerrainPoints:
@@ -150,25 +159,44 @@ def navigation_drift(
 
 def check_nav(nav: NavState) -> str:
     """Why ``nav`` cannot be used by the mapper, or ``""`` if it can."""
+    return _checked_pose_covariance(nav)[0]
+
+
+_POSE_INDEX = np.array([0, 1, 2, 6, 7, 8])  # [position, attitude] in NavState.covariance (eq. 6)
+
+
+def _checked_pose_covariance(nav: NavState) -> tuple[str, np.ndarray | None]:
+    """:func:`check_nav`'s reason and, when ``nav`` is usable, its pose covariance ``P_x`` (6, 6)
+    ``[position, attitude]``, symmetrised (what ``NavState.pose_covariance`` gives, in one gather)."""
     try:
         p = np.asarray(nav.position_ned_m, dtype=float)
         q = np.asarray(nav.quaternion_wxyz, dtype=float)
         cov = np.asarray(nav.covariance, dtype=float)
+        v = np.asarray(nav.velocity_ned_mps, dtype=float)
+        t_finite = math.isfinite(nav.t_s)
     except (TypeError, ValueError):
-        return "nav not numeric"
+        return "nav not numeric", None
     if p.shape != (3,) or q.shape != (4,) or cov.shape != (9, 9):
-        return f"nav shapes wrong: position {p.shape}, quaternion {q.shape}, covariance {cov.shape}"
-    if not nav.is_finite() or not np.isfinite(nav.t_s):
-        return "nav not finite"
-    if np.linalg.norm(q) < 1e-6:
-        return "nav quaternion has zero norm"
-    P_x = nav.pose_covariance
+        return f"nav shapes wrong: position {p.shape}, quaternion {q.shape}, covariance {cov.shape}", None
+    # a finite sum means every term is finite (inf and NaN propagate); the exact test otherwise
+    if not (t_finite and (math.isfinite(p.sum() + q.sum() + cov.sum() + v.sum()) or nav.is_finite())):
+        return "nav not finite", None
+    if math.sqrt(float(q @ q)) < 1e-6:  # np.linalg.norm(q)
+        return "nav quaternion has zero norm", None
+    P_x = cov[_POSE_INDEX[:, None], _POSE_INDEX]
     scale = max(1.0, float(np.max(np.abs(P_x))))
     if np.max(np.abs(P_x - P_x.T)) > 1e-6 * scale:
-        return "nav pose covariance not symmetric"
-    if np.min(np.linalg.eigvalsh(0.5 * (P_x + P_x.T))) < -1e-9 * scale:
-        return "nav pose covariance not positive semi-definite"
-    return ""
+        return "nav pose covariance not symmetric", None
+    P_x = 0.5 * (P_x + P_x.T)
+    diagonal = np.diagonal(P_x)
+    # the eigenvalues of a diagonal matrix are its diagonal (the usual case: configured floors)
+    if np.count_nonzero(P_x) == np.count_nonzero(diagonal):
+        lowest = float(diagonal.min())
+    else:
+        lowest = float(np.linalg.eigvalsh(P_x).min())
+    if lowest < -1e-9 * scale:
+        return "nav pose covariance not positive semi-definite", None
+    return "", P_x
 
 
 class Mapper:
@@ -227,7 +255,7 @@ class Mapper:
         image = np.asarray(image)
         if image.ndim not in (2, 3):
             raise ValueError(f"mapper image must be (H, W) or (H, W, 3), got shape {image.shape}")
-        reason = check_nav(nav)
+        reason, P_x = _checked_pose_covariance(nav)
         if reason:
             return self._refused(nav, 0, reason)
         if self.detector is not None:
@@ -240,7 +268,7 @@ class Mapper:
             from companion.mapper.features import as_gray
 
             descriptors = patch_descriptors(as_gray(image), uv_raw, self.cfg.appearance_patch_px)
-        return self.step_measurements(nav, self.camera.undistort(uv_raw), descriptors)
+        return self._step_checked(nav, P_x, self.camera.undistort(uv_raw), descriptors)
 
     def _harris(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The default detector, built once per image size (its buffers are reused frame to frame)."""
@@ -267,31 +295,42 @@ class Mapper:
             descriptors = np.asarray(descriptors, dtype=np.float32)
             if descriptors.shape != (len(uv), self.db.template.shape[1]):
                 raise ValueError(f"descriptors must have shape ({len(uv)}, {self.db.template.shape[1]}), got {descriptors.shape}")
-        reason = check_nav(nav)
+        reason, P_x = _checked_pose_covariance(nav)
         if reason:
             return self._refused(nav, len(uv), reason)
+        return self._step_checked(nav, P_x, uv, descriptors)
 
+    def _step_checked(self, nav: NavState, P_x: np.ndarray, uv: np.ndarray, descriptors: np.ndarray | None) -> MapperStep:
+        """:meth:`step_measurements` after its input checks: ``nav`` accepted by :func:`check_nav`
+        with its symmetrised pose covariance ``P_x`` (6, 6), ``uv`` (N, 2) float, ``descriptors``
+        (N, K) float32 or None."""
         cfg, db, model = self.cfg, self.db, self.model
         self.frame += 1
-        P_x = nav.pose_covariance
-        P_x = 0.5 * (P_x + P_x.T)
-        pose = CameraPose.from_body(nav.position_ned_m, nav.R_nb, self.mount)
+        pose = CameraPose.from_nav(nav.position_ned_m, nav.quaternion_wxyz, self.mount)
         self._emit_P_x, self._emit_p = P_x, pose.p
 
-        valid = np.isfinite(uv).all(axis=1) & self.camera.in_image(uv)
-        meas_index = np.flatnonzero(valid)  # positions in the caller's array
-        z = uv[valid]
-        desc = descriptors[valid] if descriptors is not None else None
+        valid = _in_image(uv, self.camera)  # finite and inside
+        if valid.all():  # the usual case (the detector's corners)
+            meas_index, z, desc = np.arange(len(uv)), uv, descriptors
+        else:
+            meas_index = np.flatnonzero(valid)  # positions in the caller's array
+            z = uv[valid]
+            desc = descriptors[valid] if descriptors is not None else None
         n_dropped = int(len(uv) - len(z))
         emitted: list[TerrainPoints] = []
 
         # Corrupt features (cannot happen through the update, which refuses non-finite results) go.
+        # The stored features are gathered once (y, P, R_ref follow `slots` through the step).
         slots = db.active_slots()
-        corrupt = ~(np.isfinite(db.y[slots]).all(axis=1) & np.isfinite(db.P[slots]).all(axis=(1, 2)))
-        removed_ids = [db.ids[slots[corrupt]].copy()]
-        db.remove(slots[corrupt])
-        n_removed = int(corrupt.sum())
-        slots = slots[~corrupt]
+        y, P, R_ref = db.y[slots], db.P[slots], db.R_ref[slots]
+        removed_ids = [_empty_ids()]
+        n_removed = 0
+        if not math.isfinite(y.sum() + P.sum()):  # (a finite sum: every feature finite, the usual case)
+            corrupt = ~(np.isfinite(y).all(axis=1) & np.isfinite(P).all(axis=(1, 2)))
+            removed_ids.append(db.ids[slots[corrupt]])
+            db.remove(slots[corrupt])
+            n_removed = int(corrupt.sum())
+            slots, y, P, R_ref = slots[~corrupt], y[~corrupt], P[~corrupt], R_ref[~corrupt]
 
         # Correlated navigation error (docs/mapper.md): the features live in the estimate's frame,
         # which drifts between frames (process noise on every feature); the paper's P_x in eqs. 10
@@ -301,40 +340,47 @@ class Mapper:
             P_meas = np.zeros_like(P_x)
             q = navigation_drift(P_x, nav.t_s - self._last_nav_t, cfg.nav_attitude_correlation_s, pose.p - self._last_nav_p)
             if len(slots) and q is not None:
-                J = model.navigation_frame_jacobian(db.y[slots], db.R_ref[slots], pose.p)
-                Q = J @ q @ np.swapaxes(J, 1, 2)
-                db.P[slots] += 0.5 * (Q + np.swapaxes(Q, 1, 2))
+                J = model.navigation_frame_jacobian(y, R_ref, pose.p)
+                Q = J @ q @ J.transpose(0, 2, 1)
+                P += 0.5 * (Q + Q.transpose(0, 2, 1))
+                db.P[slots] = P
         self._last_nav_t = float(nav.t_s)
         self._last_nav_p = pose.p.copy()
 
         # Predict (eqs. 3-4); features behind the camera or outside the image leave the database.
-        uv_pred, h_c = model.measurement_model(db.y[slots], db.R_ref[slots], pose, self.camera)
-        visible = (h_c[:, 0] > 0) & self.camera.in_image(uv_pred)
-        leaving = slots[~visible]
-        emitted.append(self._emitted_points(nav.t_s, leaving[db.converged[leaving]]))
-        removed_ids.append(db.ids[leaving].copy())
-        db.remove(leaving)
-        n_removed += len(leaving)
-        slots, uv_pred, h_c = slots[visible], uv_pred[visible], h_c[visible]
+        uv_pred, h_c = model.measurement_model(y, R_ref, pose, self.camera)
+        visible = (h_c[:, 0] > 0) & _in_image(uv_pred, self.camera)
+        if not visible.all():
+            leaving = slots[~visible]
+            removed_ids.append(db.ids[leaving])
+            db.remove(leaving)
+            n_removed += len(leaving)
+            slots, y, P, R_ref = slots[visible], y[visible], P[visible], R_ref[visible]
+            uv_pred, h_c = uv_pred[visible], h_c[visible]
 
         # Match (eqs. 10-12).
-        C_x, C_y = model.measurement_jacobian(db.y[slots], db.R_ref[slots], pose, self.camera, h_c)
-        S = innovation_covariance(C_x, C_y, P_meas, db.P[slots], self.R_img)
-        Z = mahalanobis_distances(z, uv_pred, S)
-        Z_match = Z
+        # Only pairs inside a gate or near a prediction matter (matching.candidate_pairs): the
+        # distances of eqs. 11-12 are evaluated for those pairs, not for all N x M.
+        C_x, C_y = model.measurement_jacobian(y, R_ref, pose, self.camera, h_c)
+        S = innovation_covariance(C_x, C_y, P_meas, P, self.R_img)
+        pairs = candidate_pairs(z, uv_pred, S, max(cfg.gate_chi2, cfg.init_exclusion_chi2), cfg.min_distance_px)
+        gated = (pairs.Z < cfg.gate_chi2).nonzero()[0]
+        pair_point, pair_meas, pair_Z = pairs.point[gated], pairs.meas[gated], pairs.Z[gated]
         if desc is not None:
             # Appearance: a pair whose patches do not correlate is not a candidate at all.
-            looks = db.has_template[slots]
-            unlike = looks[:, None] & (correlation(db.template[slots], desc) < cfg.appearance_min_ncc)
-            Z_match = np.where(unlike, np.inf, Z)
-        point_idx, match_idx, ambiguous = gate_and_match(Z_match, cfg.gate_chi2)
+            looks = db.has_template[slots[pair_point]]
+            ncc = pair_correlation(db.template[slots[pair_point]], desc[pair_meas])
+            like = ~(looks & (ncc < cfg.appearance_min_ncc))
+            pair_point, pair_meas, pair_Z = pair_point[like], pair_meas[like], pair_Z[like]
+        point_idx, match_idx, ambiguous = gate_and_match_pairs(pair_point, pair_meas, pair_Z, cfg.gate_chi2, len(z))
 
         # Update (eqs. 6-9), all matched features at once.
         upd = slots[point_idx]
         y_new, P_new, ok = ekf_update(
-            db.y[upd], db.P[upd], z[match_idx] - uv_pred[point_idx], C_x[point_idx], C_y[point_idx], P_meas, self.R_img
+            y[point_idx], P[point_idx], z[match_idx] - uv_pred[point_idx], C_x[point_idx], C_y[point_idx], P_meas, self.R_img
         )
-        db.y[upd] = model.normalise_state(y_new)
+        y_new = model.normalise_state(y_new)
+        db.y[upd] = y_new
         db.P[upd] = P_new
         updated = upd[ok]
         db.updates[updated] += 1
@@ -345,46 +391,49 @@ class Mapper:
         updated_meas = match_idx[ok]  # measurement of each accepted update
 
         # Confidence index: +1 matched, -1 visible but not matched (or refused).
-        unmatched = np.setdiff1d(slots, updated, assume_unique=True)
+        not_updated = np.ones(len(slots), dtype=bool)
+        not_updated[point_idx[ok]] = False
+        unmatched = slots[not_updated]  # ascending, as slots
         db.adjust_confidence(updated, unmatched, cfg.confidence_max)
 
         # Convergence: emit a feature the first time its relative depth sigma falls below the limit.
-        rel = model.relative_depth_sigma(db.y[updated], db.P[updated], db.R_ref[updated], db.origin[updated])
-        depth = model.depth_from_origin(db.y[updated], db.R_ref[updated], db.origin[updated])
+        y_upd, P_upd, R_upd, origin_upd = y_new[ok], P_new[ok], R_ref[point_idx[ok]], db.origin[updated]
+        rel = model.relative_depth_sigma(y_upd, P_upd, R_upd, origin_upd)
+        depth = model.depth_from_origin(y_upd, R_upd, origin_upd)
         newly = (
             (~db.converged[updated])
             & (db.updates[updated] >= cfg.converge_min_updates)
             & (rel < cfg.converged_rel_depth_sigma)
             & (rel * depth < cfg.converged_max_depth_sigma_m)
         )
-        db.converged[updated[newly]] = True
-        emitted.append(self._emitted_points(nav.t_s, updated[newly]))
+        if newly.any():
+            db.converged[updated[newly]] = True
+            emitted.append(self._emitted_points(nav.t_s, updated[newly]))
 
         # Initialise unmatched, unambiguous measurements (eqs. 13-17) in score order.
         n_matched = len(updated)
         init_index = max(0.0, cfg.init_index_max * (1.0 - n_matched / db.capacity))
         used = np.zeros(len(z), dtype=bool)
         used[match_idx] = True
-        blocked = ambiguous | near_stored_features(Z, z, uv_pred, cfg.init_exclusion_chi2, cfg.min_distance_px)
+        blocked = ambiguous | near_stored_pairs(pairs, len(z), cfg.init_exclusion_chi2, cfg.min_distance_px)
         candidates = np.flatnonzero(~used & ~blocked)
         free = db.free_slots()
-        replaceable = np.setdiff1d(slots, updated, assume_unique=True)
-        replaceable = replaceable[db.confidence[replaceable] < init_index]
+        replaceable = unmatched[db.confidence[unmatched] < init_index]
         replaceable = replaceable[np.lexsort((db.born_frame[replaceable], db.confidence[replaceable]))]
         n_new = min(len(candidates), len(free) + len(replaceable))
         targets = np.concatenate([free, replaceable])[:n_new].astype(np.intp)
         replaced = targets[len(free):]
-        emitted.append(self._emitted_points(nav.t_s, replaced[db.converged[replaced]]))
-        removed_ids.append(db.ids[replaced].copy())
-        db.remove(replaced)
-        n_removed += len(replaced)
+        if len(replaced):
+            removed_ids.append(db.ids[replaced])
+            db.remove(replaced)
+            n_removed += len(replaced)
 
         new_ids = _empty_ids()
         n_fallback = 0
         chosen = candidates[:n_new]
         if n_new:
             h, _ = camera_ray_from_pixel(z[chosen], self.camera)
-            rays = (h / np.linalg.norm(h, axis=1, keepdims=True)) @ pose.R_nc.T
+            rays = (h / np.sqrt((h * h).sum(axis=1, keepdims=True))) @ pose.R_nc.T  # unit rays, NED
             ranges, n_fallback = prior_ranges(
                 self.depth_prior, pose.p_c, rays, self.default_ground_alt_m, cfg.prior_min_range_m, cfg.prior_max_range_m
             )
@@ -422,8 +471,8 @@ class Mapper:
     def _points(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position (K, 3) and its covariance ``J P_y J^T`` (K, 3, 3) of the features in ``slots``."""
         X, J = self.model.point_from_state(self.db.y[slots], self.db.R_ref[slots])
-        cov = J @ self.db.P[slots] @ np.swapaxes(J, 1, 2)
-        return X, 0.5 * (cov + np.swapaxes(cov, 1, 2))
+        cov = J @ self.db.P[slots] @ J.transpose(0, 2, 1)
+        return X, 0.5 * (cov + cov.transpose(0, 2, 1))
 
     def _emitted_points(self, t_s: float, slots: np.ndarray) -> TerrainPoints:
         """Converged features as terrain points. With the correlated navigation model the feature

@@ -38,19 +38,21 @@ def ekf_update(
     n, dim = y.shape
     if n == 0:
         return y.copy(), P_y.copy(), np.zeros(0, dtype=bool)
-    C_yT = np.swapaxes(C_y, 1, 2)
-    R_eff = C_x @ P_x @ np.swapaxes(C_x, 1, 2) + R_img  # (N, 2, 2)
+    C_yT = C_y.transpose(0, 2, 1)
+    R_eff = C_x @ P_x @ C_x.transpose(0, 2, 1) + R_img  # (N, 2, 2)
     S = C_y @ P_y @ C_yT + R_eff
-    S_inv, ok = inverse_2x2(0.5 * (S + np.swapaxes(S, 1, 2)))
+    S_inv, ok = inverse_2x2(S)  # uses the symmetric part (S_01 + S_10) / 2
 
     K = P_y @ C_yT @ S_inv  # (N, D, 2), eq. 7
     y_new = y + np.einsum("nij,nj->ni", K, innovation)  # eq. 8
     I_KC = np.eye(dim) - K @ C_y
-    P_new = I_KC @ P_y @ np.swapaxes(I_KC, 1, 2) + K @ R_eff @ np.swapaxes(K, 1, 2)  # eq. 9, Joseph
-    P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
+    P_new = I_KC @ P_y @ I_KC.transpose(0, 2, 1) + K @ R_eff @ K.transpose(0, 2, 1)  # eq. 9, Joseph
+    P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
 
-    diag = np.diagonal(P_new, axis1=1, axis2=2)
-    ok &= np.isfinite(y_new).all(axis=1) & np.isfinite(P_new).all(axis=(1, 2)) & (diag >= 0).all(axis=1)
-    y_new[~ok] = y[~ok]
-    P_new[~ok] = P_y[~ok]
+    ok &= (P_new.diagonal(axis1=1, axis2=2) >= 0).all(axis=1)
+    if not np.isfinite(y_new.sum() + P_new.sum()):  # (a finite sum: all finite, the usual case)
+        ok &= np.isfinite(y_new).all(axis=1) & np.isfinite(P_new).all(axis=(1, 2))
+    if not ok.all():
+        y_new[~ok] = y[~ok]
+        P_new[~ok] = P_y[~ok]
     return y_new, P_new, ok

@@ -9,9 +9,13 @@ What it imitates, and from where (details and links in docs/sim.md):
   stream groups of ArduCopter/GCS_MAVLink_Copter.cpp); an interval for a message ArduPilot has no
   ap_message for is DENIED with "No ap_message for mavlink id (N)" (GCS_Common.cpp). No
   covariance message exists: ODOMETRY, *_COV, ESTIMATOR_STATUS, ALTITUDE are refused.
-* LOCAL_POSITION_NED, HOME_POSITION only once the EKF origin is set (GPS_GLOBAL_ORIGIN is sent
-  then); EKF_STATUS_REPORT carries sqrt of innovation test ratios (AP_NavEKF3_Outputs.cpp
-  getVariances), flags 0x00A7 before and 0x033F after the origin (as seen on 4.6 SITL).
+* The EKF origin comes first (``sim.origin_delay_s``: "EKF3 IMU0 origin set", GPS_GLOBAL_ORIGIN
+  and HOME_POSITION sent to every link), the use of GPS ``sim.gps_delay_s`` later ("EKF3 IMU0 is
+  using GPS"): only then LOCAL_POSITION_NED, EKF_STATUS_REPORT flags 0x033F (0x00A7 before) and
+  arming in GUIDED. A real 4.6 SITL took 20 s and 41 s (docs/sitl.md). EKF_STATUS_REPORT carries
+  sqrt of innovation test ratios (AP_NavEKF3_Outputs.cpp getVariances).
+* MAV_CMD_REQUEST_MESSAGE for a message that exists but is not available yet (HOME_POSITION
+  before the origin) is ACCEPTED and nothing follows (GCS_Common.cpp, as seen on 4.6 SITL).
 * GUIDED (ModeGuided): starts holding; SET_POSITION_TARGET_LOCAL_NED honoured only in GUIDED,
   frames LOCAL_NED / LOCAL_OFFSET_NED / BODY_NED / BODY_OFFSET_NED; any ignore bit of a vector
   ignores the whole vector; pos+vel, vel(+acc), acc, pos are the accepted combinations and
@@ -19,7 +23,9 @@ What it imitates, and from where (details and links in docs/sim.md):
   (3 s): the vehicle stops and holds. Takeoff only by MAV_CMD_NAV_TAKEOFF (param7 = altitude
   above home), armed and landed in GUIDED; setpoints do not lift it off the ground.
 * Arming: GUIDED / LOITER / POSHOLD need a position estimate ("PreArm: Need Position
-  Estimate"); RTL, LAND, AUTO are not armable; force with param2 = 2989. Auto-disarm after
+  Estimate"); RTL, LAND, AUTO are not armable; force with param2 = 2989. Disarmed, any mode
+  change is accepted (Copter::set_mode: ``ignore_checks = !motors->armed()``): the checks
+  move to arming. Auto-disarm after
   DISARM_DELAY (10 s) on the ground, and on landing in LAND / RTL.
 """
 
@@ -89,6 +95,12 @@ class ArduPilotCopter(SimAutopilot):
     def __init__(self, sim, home=None, sysid: int = 1, seed: int | None = None):
         super().__init__(sim, home, sysid, seed)
         self.mode = STABILIZE
+        self.using_gps = False
+
+    @property
+    def position_valid(self) -> bool:
+        """The EKF has an origin and uses GPS (``gps_delay_s`` after the origin)."""
+        return self.using_gps
 
     # ---- parameters ----------------------------------------------------------------------------
 
@@ -148,10 +160,11 @@ class ArduPilotCopter(SimAutopilot):
             return mav.MAV_RESULT_FAILED
         if mode == self.mode:
             return mav.MAV_RESULT_ACCEPTED
-        if mode in NEEDS_POSITION and not self.position_valid:
+        # Copter::set_mode: disarmed, every mode is accepted (the checks are the arming checks)
+        if self.armed and mode in NEEDS_POSITION and not self.position_valid:
             self.statustext(mav.MAV_SEVERITY_WARNING, f"Mode change to {name} failed: requires position")
             return mav.MAV_RESULT_FAILED
-        if mode == AUTO:
+        if self.armed and mode == AUTO:
             self.statustext(mav.MAV_SEVERITY_WARNING, "Mode change to AUTO failed: no mission")
             return mav.MAV_RESULT_FAILED
         self.mode = mode
@@ -338,10 +351,40 @@ class ArduPilotCopter(SimAutopilot):
 
     # ---- events ----------------------------------------------------------------------------------
 
+    def check_events(self) -> None:
+        super().check_events()
+        if self.origin_set and not self.using_gps and self.t_s >= self.sim.origin_delay_s + self.sim.gps_delay_s:
+            self.using_gps = True
+            self.statustext(mav.MAV_SEVERITY_INFO, "EKF3 IMU0 is using GPS")
+
     def on_origin_set(self) -> None:
+        # as 4.6 SITL: the origin, the field elevation and home to every link at once
         self.statustext(mav.MAV_SEVERITY_INFO, "EKF3 IMU0 origin set")
-        self.statustext(mav.MAV_SEVERITY_INFO, "EKF3 IMU0 is using GPS")
+        self.statustext(mav.MAV_SEVERITY_INFO, f"Field Elevation Set: {self.home.alt_m:.0f}m")
         self.send(None, self.msg_gps_global_origin())
+        self.send(None, self.msg_home_position())
+        if self.sim.gps_delay_s <= 0:
+            self.using_gps = True
+            self.statustext(mav.MAV_SEVERITY_INFO, "EKF3 IMU0 is using GPS")
+
+    def msg_gps_global_origin(self):
+        if not self.origin_set:
+            return None
+        return mav.MAVLink_gps_global_origin_message(int(round(self.home.lat_deg * 1e7)), int(round(self.home.lon_deg * 1e7)),
+                                                     int(round(self.home.alt_m * 1000)), self.time_usec)
+
+    def msg_home_position(self):
+        if not self.origin_set:
+            return None
+        lat, lon, alt = self.home.ned_to_global(0.0, 0.0, self.home.start_down_m)
+        return mav.MAVLink_home_position_message(int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
+                                                 0.0, 0.0, self.home.start_down_m, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, self.time_usec)
+
+    def cmd_request_message(self, params, link, frame) -> int:
+        result = super().cmd_request_message(params, link, frame)
+        # GCS_MAVLINK::handle_command_request_message: a known message is ACCEPTED even when it
+        # cannot be sent yet (HOME_POSITION before the origin); nothing follows the ACK then.
+        return mav.MAV_RESULT_ACCEPTED if result == mav.MAV_RESULT_TEMPORARILY_REJECTED else result
 
     # ---- ArduPilot-only telemetry ------------------------------------------------------------------
 

@@ -1,0 +1,39 @@
+"""Soak, short version (issue 8): the daemon flies the circuit at 8x speed for 42 wall seconds
+(about 6 simulated minutes, two or three laps) while its memory, file descriptors and threads are sampled
+from /proc every 3 s. ``python -m benchmarks.soak --minutes 10`` is the long run
+(docs/reliability.md has its figures).
+
+Tolerances, after a 15 s warm-up (start-up imports, first frames, the first lap's new ground):
+- open file descriptors: range <= 2 (a leaked socket or file per reconnect/snapshot would show as
+  a steady climb: there are dozens of snapshots and thousands of frames in the window);
+- threads: range <= 3 (asyncio's executor starts its workers lazily, up to a fixed bound);
+- resident memory: range <= 16 MB and least-squares slope <= 12 MB per wall minute (the map still
+  grows a little as the laps drift; a leak of one frame per mapped frame would be ~300 kB each).
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks.soak import print_trends, run_soak
+
+pytestmark = pytest.mark.slow
+
+
+def test_short_soak_keeps_memory_descriptors_and_threads_flat():
+    result = run_soak(minutes=0.7, speedup=8.0, every_s=3.0, warmup_s=15.0)
+    print()
+    print_trends(result)
+    assert result["error"] == "", result.get("daemon_log_tail", "")
+    assert result["daemon_exit"] == 0
+    steady = [s for s in result["samples"] if s["wall_s"] >= 15.0]
+    assert len(steady) >= 8
+    # The daemon really worked through the window.
+    assert steady[-1]["frames_mapped"] > steady[0]["frames_mapped"] + 50
+    assert steady[-1]["snapshots"] > steady[0]["snapshots"] + 5
+    assert result["simulated_hours"] > 0.08
+    t = result["trends"]
+    assert t["fds"]["max"] - t["fds"]["min"] <= 2, t["fds"]
+    assert t["threads"]["max"] - t["threads"]["min"] <= 3, t["threads"]
+    assert t["rss_mb"]["max"] - t["rss_mb"]["min"] <= 16.0, t["rss_mb"]
+    assert t["rss_mb"]["per_wall_min"] <= 12.0, t["rss_mb"]
