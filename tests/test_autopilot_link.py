@@ -385,6 +385,9 @@ def test_px4_over_tcp_uses_odometry_and_answers_timesync_requests():
             await until(lambda: (link.nav_buffer.latest() or 0) and link.nav_buffer.latest().covariance_source == "ODOMETRY", what="ODOMETRY covariance")
             nav = link.nav_buffer.latest()
             np.testing.assert_allclose(np.diag(nav.covariance)[:3], [0.09, 0.09, 0.09])  # floors (0.3 m)^2 over 0.04
+            # Streams are requested one at a time in a fixed order: ODOMETRY can flow before EKF_STATUS_REPORT
+            # (later in the order) has its answer, more so on a loaded machine.
+            await until(lambda: link.status()["streams"]["EKF_STATUS_REPORT"]["result"] != "not requested", what="EKF_STATUS_REPORT answer")
             st = link.status()
             assert st["streams"]["EKF_STATUS_REPORT"]["result"] == "DENIED"
             assert st["streams"]["ODOMETRY"]["result"] == "ACCEPTED"
