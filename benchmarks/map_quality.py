@@ -43,6 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from companion import report  # noqa: E402
 from companion.avoidance import PullUpLaw, nominal_climb_rate  # noqa: E402
 from companion.config import CompanionConfig, replace  # noqa: E402
 from companion.geometry import camera_from_config, quat_to_matrix  # noqa: E402
@@ -467,7 +468,10 @@ def map_figures(grid: TerrainGrid, world: World, building: str = "building") -> 
     flat = hi <= 1e-6  # flat ground (no structure within a cell)
     ob = world.obstacle(building)
     fp = np.asarray(ob.footprint_ne_m, float)
-    inside = _inside_polygon(cn, ce, fp)
+    # The footprint grown by one cell, as the demo's metric (companion.report.footprint_cells): a
+    # wall's points fall half a cell either side of it.
+    centres = np.column_stack([cn, ce])
+    inside = _inside_polygon(cn, ce, fp) | (report.distance_to_polygon_edges(centres, fp) <= c)
     hb = h[inside]
     out = {
         "cells": float(len(h)),

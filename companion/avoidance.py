@@ -9,7 +9,8 @@ vehicle's climb and descent limits. Signs: altitude ``h`` and climb rate ``w`` a
 
 Functions in derivation order: :func:`time_to_go` (Delta t_i), :func:`height_restriction`
 (eq. 18), :func:`minimum_climb_rate` (eqs. 19-20 completed with the push-over and the climb-rate
-limit), :func:`nominal_climb_rate` (return to the nominal altitude), then :class:`PullUpLaw`.
+limit), :func:`nominal_climb_rate` (return to the nominal altitude), :func:`margin_height` (a cell
+as high as its estimate plus k sigma), then :class:`PullUpLaw`.
 """
 
 from __future__ import annotations
@@ -100,7 +101,8 @@ class AvoidanceCommand:
     climb_rate_mps: commanded climb rate, clipped to [-max_descent, max_climb].
     nominal_climb_mps: what the nominal-altitude command alone asks.
     limiting_cell_ne: centre (north, east) of the cell that set the command, None if nominal did.
-    limiting_height_m: that cell's height (or the height assumed for it when unmapped); NaN if none.
+    limiting_height_m: that cell's height plus its uncertainty margin (``margin_height``; or the height
+        assumed for it when unmapped); NaN if none.
     time_to_go_s: Delta t of that cell (NaN if none).
     required_alt_m: eq. 18, h_min of that cell (NaN if none).
     engaged: an obstacle demands more than the nominal command.
@@ -118,12 +120,33 @@ class AvoidanceCommand:
     holding_over_unknown: bool = False
 
 
-def known_fraction_below(grid: TerrainGrid, position_ne: np.ndarray, radius_m: float) -> float:
-    """Fraction of the cells whose centre lies within ``radius_m`` of the vehicle that hold evidence."""
-    disc = grid.corridor(position_ne, np.array([1.0, 0.0]), 0.0, radius_m)
-    inside = np.hypot(disc.north_m - position_ne[0], disc.east_m - position_ne[1]) <= radius_m
+def known_fraction_below(grid: TerrainGrid, position_ne: np.ndarray, radius_m: float,
+                         direction_ne: np.ndarray | None = None) -> float:
+    """Fraction of the cells below the vehicle that hold evidence: the cells whose centre lies within
+    ``radius_m`` of it (hover), or, moving along the unit ``direction_ne``, those of the ground it has
+    just flown over (``radius_m`` back along track, ``radius_m`` either side). Looking back and not
+    around: at the far edge of a plain roof the mapped ground ahead would otherwise fill the disc
+    before the vehicle has left the roof."""
+    if direction_ne is None:
+        disc = grid.corridor(position_ne, np.array([1.0, 0.0]), 0.0, radius_m)
+        inside = np.hypot(disc.north_m - position_ne[0], disc.east_m - position_ne[1]) <= radius_m
+    else:
+        disc = grid.corridor(position_ne, -np.asarray(direction_ne, dtype=np.float64), radius_m, radius_m)
+        inside = (disc.along_m >= -0.5 * grid.cell_size_m) & (disc.along_m <= radius_m)
     total = int(np.count_nonzero(inside))
     return float(np.count_nonzero(inside & np.isfinite(disc.height_m))) / total if total else 0.0
+
+
+def margin_height(height_m: np.ndarray, variance: np.ndarray, k: float) -> np.ndarray:
+    """The height the law keeps its clearance above: ``h + k sqrt(variance)`` per cell (K,) (NaN
+    stays NaN). The clearance is meant above the true terrain, and the map only estimates it: a cell
+    known to +-0.6 m (a few points, each carrying the 0.8 m vertical navigation error of its pass)
+    is, with k = 2, taken 1.2 m higher. Disputed cells (points far below the top, which widen the
+    variance: docs/terrain.md) get more margin, well-observed ground less."""
+    if k <= 0.0:
+        return height_m
+    with np.errstate(invalid="ignore"):
+        return height_m + k * np.sqrt(variance)
 
 
 def fill_unknown(along_m: np.ndarray, height_m: np.ndarray, fill_m: float, cell_m: float, hover: bool) -> np.ndarray:
@@ -191,7 +214,8 @@ class PullUpLaw:
             corr = grid.corridor(p[:2] - fill * direction, direction, cfg.lookahead_m + fill, radius)
             along = corr.along_m - fill
             zone = (along >= 0.0) | (along * along + corr.cross_m * corr.cross_m <= radius * radius)
-        heights = fill_unknown(along, corr.height_m, fill, grid.cell_size_m, hover)[zone]
+        heights = fill_unknown(along, margin_height(corr.height_m, corr.variance, cfg.height_margin_sigma),
+                               fill, grid.cell_size_m, hover)[zone]
         along, cross = along[zone], corr.cross_m[zone]
         north, east = corr.north_m[zone], corr.east_m[zone]
         considered = np.isfinite(heights)
@@ -209,7 +233,7 @@ class PullUpLaw:
         # Push over only into terrain the map has seen: after a building whose roof has no texture,
         # the cells under the vehicle are unknown (not ground at zero), so hold the altitude until
         # mapped terrain is below again (docs/avoidance.md, "Unmapped cells").
-        holding = cmd < 0.0 and known_fraction_below(grid, p[:2], radius) < cfg.descend_known_fraction
+        holding = cmd < 0.0 and known_fraction_below(grid, p[:2], radius, None if hover else direction) < cfg.descend_known_fraction
         if holding:
             cmd = 0.0
         if idx is None or not engaged:

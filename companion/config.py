@@ -163,9 +163,10 @@ class TerrainConfig:
     max_spread_cells: int = _f(3, "cells", 0, 16, "largest spread radius around a point's own cell")
     min_height_sigma_m: float = _f(0.05, "m", 1e-4, 100.0, "floor on a point's height sigma (no point is exact)")
     max_horizontal_sigma_m: float = _f(2.0, "m", 0.01, 1e4, "a point whose horizontal sigma (largest axis) exceeds this cannot say which cell it is in: rejected")
-    gate_sigma: float = _f(3.0, "sigma", 0.5, 100.0, "a point further than this from a cell's estimate (innovation sigma) is rejected there")
-    gate_min_count: int = _f(2, "points", 1, 1_000_000, "the gate applies once a cell holds this much evidence")
-    reset_evidence: float = _f(3.0, "points", 0.1, 1e6, "rejected evidence, uncontradicted, after which a cell takes the new height")
+    gate_sigma: float = _f(3.0, "sigma", 0.5, 100.0, "a point this far above a cell's estimate (innovation sigma) is a higher surface: it waits for a second one to confirm it, then replaces the cell")
+    below_gate_sigma: float = _f(3.0, "sigma", 0.5, 100.0, "a point this far below a cell's estimate (innovation sigma) is a lower surface of the cell (a wall's face): ignored for the height, counted as disagreement (reset_evidence)")
+    gate_min_count: int = _f(2, "points", 1, 1_000_000, "the gates apply once a cell holds this much evidence")
+    reset_evidence: float = _f(20.0, "points", 0.1, 1e6, "points below a cell, with none agreeing in between, that bring it down to them (a wall's face sends many: keep it well above a few)")
     process_noise_m2: float = _f(1e-4, "m^2", 0.0, 100.0, "added to a cell's variance before each update, so the map can forget")
     max_abs_coordinate_m: float = _f(1e6, "m", 1.0, 1e8, "points further from the local origin are rejected as invalid")
 
@@ -183,8 +184,9 @@ class AvoidanceConfig:
     nominal_alt_m: float = _f(15.0, "m", -1e4, 1e4, "altitude to return to after an obstacle (up, local frame)")
     nominal_time_constant_s: float = _f(1.5, "s", 0.05, 60.0, "near the nominal altitude the return is exponential with this time constant")
     hover_speed_mps: float = _f(0.3, "m/s", 0.0, 10.0, "below this horizontal speed the look-ahead is a disc around the vehicle")
-    descend_known_fraction: float = _f(0.1, "", 0.0, 1.0, "descend only when at least this fraction of the cells within the miss distance below the vehicle is mapped (never push over into unseen terrain, e.g. a plain roof)")
+    descend_known_fraction: float = _f(0.03, "", 0.0, 1.0, "descend only when at least this fraction of the cells below the vehicle is mapped: those it flew over within the miss distance behind and either side (within the miss distance around at hover); never push over into unseen terrain, e.g. a plain roof, but one mapped cell in thirty is enough over sparsely mapped ground")
     unknown_fill_m: float = _f(5.0, "m", 0.0, 1000.0, "an unmapped cell is taken as high as the highest mapped cell within this along-track distance in the corridor")
+    height_margin_sigma: float = _f(2.0, "sigma", 0.0, 10.0, "a mapped cell counts as h + k sqrt(variance): the clearance is kept above the map's uncertainty too (0 = the estimate alone)")
     enabled: bool = _f(True, doc="false = command the nominal altitude only; the law is still evaluated and published (demo --no-avoid)")
 
 

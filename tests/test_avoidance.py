@@ -174,7 +174,7 @@ def mapped(cells, ground=0.0, extent=((-30, 150), (-20, 20))):
     return grid
 
 
-CFG = AvoidanceConfig(clearance_m=10.0, accel_mps2=1.0, miss_distance_m=3.0, lookahead_m=80.0,
+CFG = AvoidanceConfig(clearance_m=10.0, accel_mps2=1.0, miss_distance_m=3.0, lookahead_m=80.0, height_margin_sigma=0.0,
                       max_climb_mps=3.0, max_descent_mps=2.0, nominal_alt_m=10.0)
 
 
@@ -312,5 +312,53 @@ def test_no_push_over_into_an_unseen_roof():
     grid.insert(TerrainPoints(0.0, pts, np.tile(np.diag([0.01, 0.01, 0.01]), (len(pts), 1, 1))))
     over_roof = law.command([32.0, 0.0, -CFG.nominal_alt_m - 9.0], [5, 0, 0], grid)
     assert over_roof.holding_over_unknown and over_roof.climb_rate_mps == 0.0
+    # Near the far edge the mapped ground ahead fills the disc around the vehicle, but the vehicle
+    # is still over the roof: what counts is the ground it has just flown over (found in the demo).
+    for north in (38.0, 39.5):
+        near_edge = law.command([north, 0.0, -CFG.nominal_alt_m - 9.0], [5, 0, 0], grid)
+        assert near_edge.holding_over_unknown and near_edge.climb_rate_mps == 0.0
     past = law.command([52.0, 0.0, -CFG.nominal_alt_m - 9.0], [5, 0, 0], grid)
     assert not past.holding_over_unknown and past.climb_rate_mps < 0.0
+
+
+def with_variance(grid, variance):
+    """A copy of ``grid`` whose known cells all have ``variance`` (m^2)."""
+    out = TerrainGrid(gate_min_count=10**6)
+    for key in grid.keys():
+        t = grid.tile(key)
+        t.variance[t.count > 0] = variance
+        out.put_tile(t)
+    return out
+
+
+def test_the_law_keeps_its_clearance_above_the_map_uncertainty():
+    """h + k sigma: a cell mapped at 8 m +- 0.5 m is taken as 9 m with k = 2 (the clearance is meant
+    above the true terrain, which the map only estimates)."""
+    grid = with_variance(mapped([[40.5, 0.5, 8.0]]), 0.25)
+    cfg2 = AvoidanceConfig(**{**{f: getattr(CFG, f) for f in CFG.__dataclass_fields__}, "height_margin_sigma": 2.0})
+    c0 = PullUpLaw(CFG).command([13, 0.5, -10.0], [5, 0, 0], grid)
+    c2 = PullUpLaw(cfg2).command([13, 0.5, -10.0], [5, 0, 0], grid)
+    assert c0.limiting_height_m == pytest.approx(8.0) and c2.limiting_height_m == pytest.approx(9.0)
+    assert c2.climb_rate_mps > c0.climb_rate_mps
+    # Over flat ground mapped to +-0.5 m the vehicle holds nominal + 1 m, not the nominal altitude.
+    flat = with_variance(mapped([]), 0.25)
+    assert PullUpLaw(cfg2).command([0, 0.5, -11.0], [5, 0, 0], flat).climb_rate_mps == pytest.approx(0.0, abs=1e-9)
+    assert PullUpLaw(cfg2).command([0, 0.5, -10.5], [5, 0, 0], flat).climb_rate_mps > 0.0
+
+
+@settings(max_examples=30, deadline=None)
+@given(k=st.floats(0.0, 4.0), sigma=st.floats(0.01, 2.0), alt=st.floats(8.0, 30.0), north=st.floats(-5.0, 35.0))
+def test_margin_is_the_same_law_on_a_map_raised_by_k_sigma(k, sigma, alt, north):
+    """Property: the law with margin k on a map of variance sigma^2 commands exactly what the law
+    without margin commands on the same map raised by k sigma."""
+    cells = [[40.5, 0.5, 8.0], [41.5, 0.5, 6.0], [60.5, -1.5, 12.0]]
+    fields = {f: getattr(CFG, f) for f in CFG.__dataclass_fields__}
+    with_k = PullUpLaw(AvoidanceConfig(**{**fields, "height_margin_sigma": k}))
+    extent = ((-15, 75), (-8, 8))
+    grid = with_variance(mapped(cells, extent=extent), sigma * sigma)
+    raised = with_variance(mapped([[n, e, h + k * sigma] for n, e, h in cells], ground=k * sigma, extent=extent),
+                           sigma * sigma)
+    a = with_k.command([north, 0.5, -alt], [5, 0, 0], grid)
+    b = PullUpLaw(CFG).command([north, 0.5, -alt], [5, 0, 0], raised)
+    assert a.climb_rate_mps == pytest.approx(b.climb_rate_mps, abs=1e-5)  # the map stores float32
+    assert a.engaged == b.engaged

@@ -169,7 +169,8 @@ def test_a_constant_navigation_error_costs_decimetres_not_the_map():
     clean, _ = _fly_feature_level(slow, ([0.0, 0.0, 0.0], np.zeros(3)))
     est, ref = _fly_feature_level(slow, offset)
     paper, _ = _fly_feature_level(dataclasses.replace(MapperConfig(), nav_attitude_correlation_s=0.0), offset)
-    assert len(est) >= 0.8 * len(clean) > 80 and len(paper) == 0
+    # Each feature is emitted once (when it converges): ~60 of the ~100 tracked ones here.
+    assert len(est) >= 0.8 * len(clean) > 40 and len(paper) == 0
     dz = np.abs(est[:, 2] - ref[:, 2])
     assert np.median(dz) < 0.25 and np.percentile(dz, 95) < 0.6
 

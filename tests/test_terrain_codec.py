@@ -21,7 +21,10 @@ def random_tile(rng, t=8, tx=-3, ty=7, cell=0.5, disagreement=False):
     unknown = rng.random((t, t)) < 0.3
     h[unknown], v[unknown], n[unknown] = np.nan, np.inf, 0
     d = rng.uniform(0, 3, (t, t)).astype(np.float32) if disagreement else None
-    return Tile(tx, ty, h, v, n, cell, d)
+    pending = None
+    if disagreement:  # the fusion state: disagreement and pending heights (NaN: none)
+        pending = np.where(rng.random((t, t)) < 0.8, np.nan, rng.normal(10, 5, (t, t))).astype(np.float32)
+    return Tile(tx, ty, h, v, n, cell, d, pending)
 
 
 @settings(max_examples=40, deadline=None)
@@ -39,7 +42,7 @@ def test_round_trip_is_bit_exact(seed, t, tx, ty, cell, dis):
 def test_wire_tile_leaves_out_the_fusion_state():
     tile = random_tile(np.random.default_rng(0), disagreement=True)
     back = decode_tile(encode_tile(tile))
-    assert back.disagreement is None
+    assert back.disagreement is None and back.pending is None
     assert back.height.tobytes() == tile.height.tobytes()
 
 
@@ -78,7 +81,7 @@ def test_grid_tiles_survive_the_wire():
     [
         (lambda d: b"XXXX" + d[4:], "magic"),
         (lambda d: d[:4] + struct.pack("<H", 2) + d[6:], "version"),
-        (lambda d: d[:6] + struct.pack("<H", 0b10111) + d[8:], "layers"),
+        (lambda d: d[:6] + struct.pack("<H", 0b100111) + d[8:], "layers"),
         (lambda d: d[:6] + struct.pack("<H", 0b011) + d[8:], "layers"),
         (lambda d: d[:-1], "length"),
         (lambda d: d + b"\0", "length"),
@@ -102,3 +105,16 @@ def test_malformed_tiles_are_refused():
         Tile(0, 0, z, z, np.zeros((4, 4), np.uint32), cell_size_m=0.0)
     with pytest.raises(ValueError, match="disagreement"):
         encode_tile(Tile(0, 0, z, z, np.zeros((4, 4), np.uint32)), with_disagreement=True)
+
+
+def test_a_snapshot_tile_without_the_pending_layer_still_decodes():
+    """Snapshots written before the pending layer (bit 4) existed carry bit 3 only."""
+    tile = random_tile(np.random.default_rng(6), disagreement=True)
+    old = Tile(tile.tx, tile.ty, tile.height, tile.variance, tile.count, tile.cell_size_m, tile.disagreement)
+    data = encode_tile(old, with_disagreement=True)
+    assert struct.unpack_from("<H", data, 6)[0] == 0b1111
+    back = decode_tile(data)
+    assert back.pending is None and back.same_as(old)
+    grid = TerrainGrid(tile_cells=tile.tile_cells, cell_size_m=tile.cell_size_m)
+    grid.put_tile(back)
+    assert np.isnan(grid.tile(tile.key, with_disagreement=True).pending).all()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -54,8 +55,9 @@ def test_fusion_converges_to_true_height_and_variance_shrinks():
     h, v, n = grid.height_at(*np.meshgrid(np.arange(8) + 0.5, np.arange(8) + 0.5))
     assert np.all(np.abs(h - truth) <= 4 * np.sqrt(v))
     assert np.sqrt(v.max()) < 0.12
-    # A 3-sigma gate refuses ~0.3% of honest points: a few cells hold 39.
-    assert np.all(n >= 38) and n.mean() > 39.5
+    # The gates refuse ~2.4 % of honest points (2.3 % more than 2 sigma below: a lower surface;
+    # 0.13 % more than 3 sigma above, waiting for confirmation): about one in 40.
+    assert np.all(n >= 35) and n.mean() > 38.5
 
 
 def test_cell_moves_both_up_and_down():
@@ -96,34 +98,146 @@ def test_wild_point_in_a_batch_of_good_ones_is_bounded():
     assert abs(h) < 0.5
 
 
-def test_persistent_new_evidence_moves_the_cell():
-    """A building appears where the map said ground: after `reset_evidence` points of
-    uncontradicted disagreement the cell takes the new height."""
-    grid = TerrainGrid(reset_evidence=3.0)
+def test_a_higher_surface_replaces_the_cell_once_a_second_point_confirms_it():
+    """A building appears where the map said ground (or the top of a wall comes into view): one
+    point far above waits as the cell's pending height; the next one that agrees with it raises the
+    cell to both (ETH elevation_mapping: a higher measurement outside the gate replaces the cell)."""
+    grid = TerrainGrid()
     for _ in range(10):
         grid.insert(points([[0.5, 0.5, 0.0]], sigma_h=0.2))
-    for k in range(2):
-        stats = grid.insert(points([[0.5, 0.5, 10.0]], sigma_h=0.2))
-        assert stats.rejected_outlier == 1
-        assert grid.height_at(0.5, 0.5)[0] == pytest.approx(0.0, abs=1e-6)
     stats = grid.insert(points([[0.5, 0.5, 10.0]], sigma_h=0.2))
-    assert stats.cells_reset == 1 and stats.inserted == 1
+    assert stats.rejected_outlier == 1 and stats.cells_raised == 0
+    assert grid.height_at(0.5, 0.5)[0] == pytest.approx(0.0, abs=1e-6)
+    assert grid.tile((0, 0), with_disagreement=True).pending[0, 0] == pytest.approx(10.0)
+    stats = grid.insert(points([[0.5, 0.5, 10.2]], sigma_h=0.2))
+    assert stats.cells_raised == 1 and stats.inserted == 1
     h, v, n = grid.height_at(0.5, 0.5)
-    assert h == pytest.approx(10.0, abs=1e-5) and n == 1
-    # From then on the new height is the estimate the gate defends.
-    grid.insert(points([[0.5, 0.5, 10.1]], sigma_h=0.2))
-    assert abs(grid.height_at(0.5, 0.5)[0] - 10.05) < 0.06
+    assert h == pytest.approx(10.1, abs=1e-5) and v == pytest.approx(0.02, rel=1e-5) and n == 2
+    assert np.isnan(grid.tile((0, 0), with_disagreement=True).pending[0, 0])
+    # From then on the new height is the estimate the gates defend.
+    grid.insert(points([[0.5, 0.5, 10.0]], sigma_h=0.2))
+    assert abs(grid.height_at(0.5, 0.5)[0] - 10.07) < 0.02
+    # Two points above in one batch raise at once: to their mean if they agree ...
+    grid = TerrainGrid()
+    grid.insert(points([[0.5, 0.5, 0.0]] * 3, sigma_h=0.2))
+    assert grid.insert(points([[0.5, 0.5, 10.0], [0.5, 0.5, 10.1]], sigma_h=0.2)).cells_raised == 1
+    assert grid.height_at(0.5, 0.5)[0] == pytest.approx(10.05, abs=1e-5)
+    # ... else to the lower one, the higher waiting as the pending height.
+    grid = TerrainGrid()
+    grid.insert(points([[0.5, 0.5, 0.0]] * 3, sigma_h=0.2))
+    assert grid.insert(points([[0.5, 0.5, 25.0], [0.5, 0.5, 10.0]], sigma_h=0.2)).cells_raised == 1
+    assert grid.height_at(0.5, 0.5)[0] == pytest.approx(10.0, abs=1e-5)
+    assert grid.tile((0, 0), with_disagreement=True).pending[0, 0] == pytest.approx(25.0)
 
 
-def test_agreeing_evidence_clears_the_disagreement():
-    grid = TerrainGrid(reset_evidence=3.0)
-    for _ in range(10):
-        grid.insert(points([[0.5, 0.5, 0.0]], sigma_h=0.2))
+def test_one_wild_point_never_raises_a_cell_and_a_second_only_to_the_lower_of_the_two():
+    grid = TerrainGrid()
     for _ in range(5):
-        grid.insert(points([[0.5, 0.5, 10.0], [0.5, 0.5, 10.0]], sigma_h=0.2))
-        grid.insert(points([[0.5, 0.5, 0.1]], sigma_h=0.2))
-        grid.insert(points([[0.5, 0.5, 0.0], [0.5, 0.5, 0.0]], sigma_h=0.2))
-    assert abs(grid.height_at(0.5, 0.5)[0]) < 0.1
+        grid.insert(points([[0.5, 0.5, 0.0]], sigma_h=0.3))
+    stats = grid.insert(points([[0.5, 0.5, 60.0]], sigma_h=0.3))
+    assert stats.cells_raised == 0 and stats.inserted == 0
+    for _ in range(5):  # the ground goes on agreeing: the wild height waits, harmless
+        grid.insert(points([[0.5, 0.5, 0.1]], sigma_h=0.3))
+        assert abs(grid.height_at(0.5, 0.5)[0]) < 0.1
+    # A second observation far above shows a surface at least that high, not at 60 m.
+    stats = grid.insert(points([[0.5, 0.5, 9.0]], sigma_h=0.3))
+    assert stats.cells_raised == 1
+    assert grid.height_at(0.5, 0.5)[0] == pytest.approx(9.0, abs=1e-5)
+    assert grid.tile((0, 0), with_disagreement=True).pending[0, 0] == pytest.approx(60.0)
+
+
+def test_persistent_evidence_from_below_brings_a_wrong_high_cell_down():
+    """Two agreeing wild points raised a cell (or the terrain changed): points below it count as
+    disagreement while nothing agrees with the cell; `reset_evidence` of them bring it down."""
+    grid = TerrainGrid(reset_evidence=3.0)
+    grid.insert(points([[0.5, 0.5, 12.0], [0.5, 0.5, 12.0]], sigma_h=0.2))
+    for k in range(2):
+        stats = grid.insert(points([[0.5, 0.5, 0.0]], sigma_h=0.2))
+        assert stats.rejected_outlier == 1 and stats.cells_reset == 0
+        assert grid.height_at(0.5, 0.5)[0] == pytest.approx(12.0, abs=1e-5)
+    stats = grid.insert(points([[0.5, 0.5, 0.1]], sigma_h=0.2))
+    assert stats.cells_reset == 1 and stats.inserted == 1
+    h, _, n = grid.height_at(0.5, 0.5)
+    assert h == pytest.approx(0.1, abs=1e-5) and n == 1
+    # An agreeing point in between clears the disagreement: the top of a wall keeps its cell.
+    grid = TerrainGrid(reset_evidence=3.0)
+    grid.insert(points([[0.5, 0.5, 12.0], [0.5, 0.5, 12.0]], sigma_h=0.2))
+    for _ in range(10):
+        grid.insert(points([[0.5, 0.5, 3.0]], sigma_h=0.2))
+        grid.insert(points([[0.5, 0.5, 6.0]], sigma_h=0.2))
+        grid.insert(points([[0.5, 0.5, 12.1]], sigma_h=0.2))
+    assert grid.height_at(0.5, 0.5)[0] == pytest.approx(12.05, abs=0.05)
+
+
+def wall_points(rng, top_m, n, sigma_h, north=0.5):
+    """``n`` points of a vertical wall face from the ground to ``top_m`` (features spread over its
+    height, as on the default building's windows), in random order, in the cell at ``north``."""
+    h = rng.uniform(0.0, top_m, n)
+    h[rng.choice(n, max(2, n // 8), replace=False)] = top_m  # the top edge has corners too
+    return np.c_[np.full(n, north), np.full(n, 0.5), h + rng.normal(0, sigma_h, n)]
+
+
+def test_a_cell_holding_a_wall_keeps_its_top_not_its_average():
+    """All the points of a wall fall in the same 1 m cells: averaging them maps the wall at half its
+    height (the default building at ~4.5 m of its 9 m of texture). The cell keeps the top."""
+    rng = np.random.default_rng(5)
+    grid = TerrainGrid()
+    pts = wall_points(rng, 9.0, 120, 0.3)
+    for row in pts:  # one point a batch, as the mapper emits them
+        grid.insert(points(row, sigma_h=0.3))
+    assert pts[:, 2].mean() < 5.5
+    assert grid.height_at(0.5, 0.5)[0] == pytest.approx(9.0, abs=0.4)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31), top=st.floats(3.0, 30.0), sigma=st.floats(0.05, 0.5),
+       n=st.integers(30, 150), batch=st.integers(1, 6))
+def test_wall_cells_climb_to_the_top_whatever_the_order(seed, top, sigma, n, batch):
+    """Property of the raise rule: whatever the order and batching of a wall's points, the cell
+    climbs to within a few sigma of the top of the wall (never stays at its middle), and never above
+    it by more than the noise. (Without the reset from below, which a long enough run of the wall's
+    face can trigger: the next test measures it at the default.)"""
+    rng = np.random.default_rng(seed)
+    grid = TerrainGrid(reset_evidence=1e6)
+    pts = wall_points(rng, top, n, sigma)
+    for k in range(0, n, batch):
+        grid.insert(points(pts[k : k + batch], sigma_h=sigma))
+    h = grid.height_at(0.5, 0.5)[0]
+    assert top - 4 * sigma - 0.05 * top <= h <= top + 3 * sigma
+
+
+def test_wall_cells_at_the_default_reset_evidence():
+    """What the default ``reset_evidence`` (20 points) costs a wall: the run of face points without
+    one from the top that brings the cell down is rare for the mapper's height sigmas (0.3-0.9 m);
+    it is not for very sharp points (0.1 m, a narrow agreement band at the top)."""
+    def share_at_top(sigma, trials=40):
+        at_top = 0
+        for seed in range(trials):
+            rng = np.random.default_rng(seed)
+            grid = TerrainGrid()
+            pts = wall_points(rng, 9.0, 80, sigma)
+            for row in pts:
+                grid.insert(points(row, sigma_h=sigma))
+            at_top += grid.height_at(0.5, 0.5)[0] >= 9.0 - max(3 * sigma, 0.5)
+        return at_top / trials
+    shares = {s: share_at_top(s) for s in (0.1, 0.3, 0.6, 0.9)}
+    print("\nwall cell at its top after 80 points (default reset_evidence), by point sigma:", shares)
+    assert shares[0.3] >= 0.85 and shares[0.6] >= 0.9 and shares[0.9] >= 0.9
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31), level=st.floats(-20.0, 50.0), sigma=st.floats(0.05, 1.0))
+def test_flat_ground_is_still_the_kalman_estimate(seed, level, sigma):
+    """Property: on a single surface the side gates change little: the estimate is within its own
+    few sigma of the truth and the variance shrinks like 1/n."""
+    rng = np.random.default_rng(seed)
+    grid = TerrainGrid()
+    for _ in range(30):
+        grid.insert(points([[0.5, 0.5, level + rng.normal(0, sigma)]], sigma_h=sigma))
+    h, v, n = grid.height_at(0.5, 0.5)
+    assert n >= 24
+    assert v <= 1.5 * sigma * sigma / n + grid.process_noise_m2 * 30
+    assert abs(h - level) <= 4 * math.sqrt(v) + 0.2 * sigma
 
 
 def test_process_noise_keeps_the_map_able_to_learn():
@@ -293,6 +407,9 @@ def test_pop_dirty_reports_changed_tiles_once():
 # ------------------------------------------------------------------------- memory and speed
 
 
+BYTES_PER_CELL = 20  # height, variance, count, disagreement, pending: 4 bytes each
+
+
 def cover(grid, n_range, e_range, step=1.0):
     n, e = np.meshgrid(np.arange(*n_range, step) + 0.5, np.arange(*e_range, step) + 0.5, indexing="ij")
     pts = np.c_[n.ravel(), e.ravel(), np.zeros(n.size)]
@@ -318,7 +435,7 @@ def test_memory_grows_with_observed_area_not_bounding_box():
     tiles_km2 = {name: len(g) / (g.observed_area_m2() / 1e6) for name, g in
                  (("square", square), ("strip", strip), ("diagonal", diagonal))}
     print("\nterrain memory per km^2 observed (1 m cells, 32-cell tiles; allocated, tiles in use): "
-          + ", ".join(f"{k} {v / 2**20:.1f} MiB, {tiles_km2[k] * 16 / 1024:.1f} MiB"
+          + ", ".join(f"{k} {v / 2**20:.1f} MiB, {tiles_km2[k] * BYTES_PER_CELL / 1024:.1f} MiB"
                       for k, v in per_km2.items()))
     # The same tiles for the same area whatever its shape; the pool grows by half its size at a time.
     assert tiles_km2["strip"] == tiles_km2["square"]
@@ -327,7 +444,7 @@ def test_memory_grows_with_observed_area_not_bounding_box():
     assert tiles_km2["diagonal"] < 2.0 * tiles_km2["square"]
     assert per_km2["diagonal"] < 3.0 * per_km2["square"]
     bbox_cells = 5793.0**2
-    assert diagonal.memory_bytes() < 0.02 * bbox_cells * 16
+    assert diagonal.memory_bytes() < 0.02 * bbox_cells * BYTES_PER_CELL
 
 
 def test_insert_and_query_speed(capsys):

@@ -8,9 +8,10 @@ indices -> convergence (relative and absolute depth sigma) -> initialise unmatch
 (eqs. 13-17) into free or replaceable slots. Converged features come out as
 :class:`~companion.messages.TerrainPoints`.
 
-Emission rule: a feature is emitted once when it first converges, and once more, with its final
-(better) estimate, when it leaves the database (out of view or replaced) if it had converged. Its
-id is the same both times, so the terrain map can replace the first contribution with the second.
+Emission rule: a feature is emitted once, when it first converges (the earliest warning for the
+avoidance law). It is not emitted again with its later estimate when it leaves the database: the
+terrain map fuses points as independent evidence, and the same feature twice is not (it halved the
+variance of the cells it built and let one feature confirm its own higher surface; docs/terrain.md).
 
 The core is pure: no I/O, no logging; everything worth knowing is counted in :class:`MapperStep`.
 """
@@ -351,7 +352,6 @@ class Mapper:
         visible = (h_c[:, 0] > 0) & _in_image(uv_pred, self.camera)
         if not visible.all():
             leaving = slots[~visible]
-            emitted.append(self._emitted_points(nav.t_s, leaving[db.converged[leaving]]))
             removed_ids.append(db.ids[leaving])
             db.remove(leaving)
             n_removed += len(leaving)
@@ -424,7 +424,6 @@ class Mapper:
         targets = np.concatenate([free, replaceable])[:n_new].astype(np.intp)
         replaced = targets[len(free):]
         if len(replaced):
-            emitted.append(self._emitted_points(nav.t_s, replaced[db.converged[replaced]]))
             removed_ids.append(db.ids[replaced])
             db.remove(replaced)
             n_removed += len(replaced)

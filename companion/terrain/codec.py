@@ -7,7 +7,8 @@ C or JavaScript subscriber needs nothing but the layout below::
     0      4    bytes    magic b"CTTL"
     4      2    uint16   format version (1)
     6      2    uint16   layer mask: bit0 height f32, bit1 variance f32, bit2 count u32,
-                         bit3 disagreement f32 (snapshots only); bits 0-2 always set
+                         bit3 disagreement f32, bit4 pending height f32 (snapshots only);
+                         bits 0-2 always set
     8      4    int32    tx
     12     4    int32    ty
     16     8    float64  cell size (m)
@@ -30,16 +31,17 @@ from companion.terrain.tile import Tile
 MAGIC = b"CTTL"
 VERSION = 1
 HEADER = struct.Struct("<4sHHiidHHI")  # 32 bytes
-LAYER_HEIGHT, LAYER_VARIANCE, LAYER_COUNT, LAYER_DISAGREEMENT = 1, 2, 4, 8
+LAYER_HEIGHT, LAYER_VARIANCE, LAYER_COUNT, LAYER_DISAGREEMENT, LAYER_PENDING = 1, 2, 4, 8, 16
 # Layer bit -> (Tile attribute, little-endian dtype, native dtype), in payload order.
 LAYERS = (
     (LAYER_HEIGHT, "height", "<f4", np.float32),
     (LAYER_VARIANCE, "variance", "<f4", np.float32),
     (LAYER_COUNT, "count", "<u4", np.uint32),
     (LAYER_DISAGREEMENT, "disagreement", "<f4", np.float32),
+    (LAYER_PENDING, "pending", "<f4", np.float32),
 )
 REQUIRED = LAYER_HEIGHT | LAYER_VARIANCE | LAYER_COUNT
-KNOWN = REQUIRED | LAYER_DISAGREEMENT
+KNOWN = REQUIRED | LAYER_DISAGREEMENT | LAYER_PENDING
 
 
 def encoded_size(tile_cells: int, mask: int = REQUIRED) -> int:
@@ -48,13 +50,16 @@ def encoded_size(tile_cells: int, mask: int = REQUIRED) -> int:
 
 
 def encode_tile(tile: Tile, *, with_disagreement: bool = False) -> bytes:
-    """Encode ``tile``; the disagreement layer is written only when asked for (snapshots)."""
+    """Encode ``tile``; the fusion-state layers (disagreement, and pending when the tile has it) are
+    written only when asked for (snapshots)."""
     t = tile.tile_cells
     if t > 0xFFFF:
         raise ValueError(f"tile of {t} cells a side cannot be encoded (max 65535)")
-    mask = REQUIRED | (LAYER_DISAGREEMENT if with_disagreement and tile.disagreement is not None else 0)
     if with_disagreement and tile.disagreement is None:
         raise ValueError("tile has no disagreement layer to encode")
+    mask = REQUIRED
+    if with_disagreement:
+        mask |= LAYER_DISAGREEMENT | (LAYER_PENDING if tile.pending is not None else 0)
     payload = b"".join(
         np.ascontiguousarray(getattr(tile, name), dtype=le).tobytes()
         for bit, name, le, _ in LAYERS

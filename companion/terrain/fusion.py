@@ -1,8 +1,20 @@
 """Evidence-grid fusion of converged points (seed 000, section II.E; docs/terrain.md, "Fusion").
 
 The seed only says that a converged point raises or lowers the height of its grid location.
-Here each cell holds a Gaussian estimate of its height (value, variance) and an evidence count,
-and a point updates it with a one-dimensional Kalman update, so the cell moves both up and down.
+Here each cell holds a Gaussian estimate of the height of its TOP surface (value, variance) and an
+evidence count. For obstacle avoidance the top is what matters, and a 1 m cell that holds a wall
+receives points from the whole wall (0..9 m on the default building): averaging them maps the
+building at its middle. So, as in ETH's elevation_mapping (a measurement outside the Mahalanobis
+gate: a higher one replaces the cell, a lower one is ignored), a cell fuses only the
+measurements that agree with it, and treats the others by side:
+
+* agreeing (within the gate): a one-dimensional Kalman update, up or down;
+* far above: a higher surface. It replaces the cell once a second measurement confirms it (one
+  wild point never builds an obstacle);
+* far below: a lower surface of the same cell (the face of a wall), ignored for the height; but
+  counted, and ``reset_evidence`` of them with nothing agreeing in between bring the cell down to
+  them (a wrong high value, or terrain that changed, is corrected).
+
 The steps, in the order the grid applies them to a batch of N points:
 
 1. :func:`valid_points` rejects non-finite or non-PSD input (counted, never fused);
@@ -11,12 +23,13 @@ The steps, in the order the grid applies them to a batch of N points:
    horizontal covariance says which cells it may fall in; weight = its share of the point.
 3. :func:`measurement_variance`: a pair is a measurement of the cell's height with variance
    ``sigma_z^2 / w`` (a point that is only partly in a cell says less about it).
-4. :func:`gate`: against cells that already hold evidence, a pair further than ``g`` innovation
-   sigmas is rejected (a single wild point cannot build a spike in a mapped cell).
-5. :func:`disagreement_update`: rejected evidence accumulates per cell while nothing agrees with
-   the cell; past ``reset_evidence`` the cell forgets its estimate and takes the new heights
-   (the terrain changed, or the first estimate was wrong).
-6. :func:`fuse_information`: prior (plus process noise) and the accepted pairs combine in
+4. :func:`gate_side`: against cells that already hold evidence, a pair further than ``g``
+   innovation sigmas is above (+1) or below (-1) the cell; within, it agrees (0).
+5. :func:`disagreement_update`: evidence from below accumulates per cell while nothing agrees;
+   past ``reset_evidence`` the cell takes the lower heights.
+6. :func:`confirm_raise`: the pairs above a cell, and the pending higher height the cell keeps
+   from earlier batches, decide whether the cell is raised and to what.
+7. :func:`fuse_information`: prior (plus process noise) and the agreeing pairs combine in
    information form, which is the sequential Kalman update done all at once.
 """
 
@@ -122,22 +135,87 @@ def measurement_variance(var_z: np.ndarray, weight: np.ndarray) -> np.ndarray:
     return var_z / weight
 
 
-def gate(
-    h: np.ndarray, r: np.ndarray, h_cell: np.ndarray, v_cell: np.ndarray, n_cell: np.ndarray, n_sigma: float, min_count: int
+def gate_side(
+    h: np.ndarray, r: np.ndarray, h_cell: np.ndarray, v_cell: np.ndarray, n_cell: np.ndarray, n_sigma: float, min_count: int,
+    below_sigma: float | None = None,
 ) -> np.ndarray:
-    """(M,) bool, True = reject: ``(h - h_cell)^2 > g^2 (v_cell + r)`` where the cell holds at least
-    ``min_count`` points; a cell with less evidence accepts everything (nothing to gate against)."""
+    """(M,) int8: +1 the pair is above its cell, -1 below, 0 it agrees.
+
+    Above means ``h - h_cell > g sqrt(v_cell + r)``, below ``h_cell - h > g_b sqrt(v_cell + r)``
+    (``g_b`` = ``below_sigma``, default ``g``), where the cell holds at least ``min_count`` points;
+    a cell with less evidence agrees with everything (nothing to gate against).
+    h, r: (M,) pair heights and variances; h_cell, v_cell, n_cell: (M,) the cell of each pair."""
+    g_b = n_sigma if below_sigma is None else below_sigma
     with np.errstate(invalid="ignore"):
-        nu2 = (h - h_cell) ** 2
-        return (n_cell >= min_count) & (nu2 > n_sigma * n_sigma * (v_cell + r))
+        nu = h - h_cell
+        s2 = v_cell + r
+        outside = (n_cell >= min_count) & (nu * nu > min(n_sigma, g_b) ** 2 * s2)
+        if not outside.any():
+            return np.zeros(len(h), dtype=np.int8)
+        up = outside & (nu > 0) & (nu * nu > n_sigma * n_sigma * s2)
+        down = outside & (nu < 0) & (nu * nu > g_b * g_b * s2)
+    return up.astype(np.int8) - down.astype(np.int8)
 
 
-def disagreement_update(d: np.ndarray, accepted_w: np.ndarray, rejected_w: np.ndarray) -> np.ndarray:
-    """Per touched cell: rejected evidence still uncontradicted after this batch.
+def disagreement_update(d: np.ndarray, agree_w: np.ndarray, below_w: np.ndarray) -> np.ndarray:
+    """Per touched cell (K,): evidence from below still uncontradicted after this batch.
 
-    Agreement at least as strong as the disagreement clears it; otherwise the excess accumulates.
+    d: the cell's disagreement before (points); agree_w, below_w: this batch's weight agreeing
+    with the cell and far below it. Any agreement clears it; otherwise the evidence below adds up.
+    A wall's cell receives many points from the wall's face below its top (more than from the top,
+    in the same batches too), and from time to time one from the top, which clears it; a cell that
+    is wrongly high receives only points below."""
+    return np.where(agree_w > 0, 0.0, d + below_w)
+
+
+def highest_two(cell: np.ndarray, h: np.ndarray, r: np.ndarray, k: int) -> tuple[np.ndarray, ...]:
+    """Per cell (K,): the highest and second highest of the pairs given (cell index, height and
+    variance, each (M,)): (h1, r1, h2, r2), NaN / inf where a cell has fewer."""
+    h1, h2 = np.full(k, np.nan), np.full(k, np.nan)
+    r1, r2 = np.full(k, np.inf), np.full(k, np.inf)
+    if len(cell):
+        order = np.lexsort((-h, cell))  # by cell, then highest first
+        c, hs, rs = cell[order], h[order], r[order]
+        first = np.flatnonzero(np.r_[True, c[1:] != c[:-1]])
+        h1[c[first]], r1[c[first]] = hs[first], rs[first]
+        second = first[(first + 1 < len(c)) & (np.r_[c, -1][first + 1] == c[first])] + 1
+        h2[c[second]], r2[c[second]] = hs[second], rs[second]
+    return h1, r1, h2, r2
+
+
+def confirm_raise(
+    h1: np.ndarray, r1: np.ndarray, h2: np.ndarray, r2: np.ndarray, pending: np.ndarray, n_sigma: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Whether each cell is raised by the evidence above it, to what, and what stays pending.
+
+    Per touched cell (K,): ``h1, r1`` and ``h2, r2`` = the highest and second highest of this
+    batch's pairs above the cell (NaN / inf: none); ``pending`` = the highest height earlier batches
+    saw above the cell, unconfirmed (NaN: none). Two observations above a cell show that its top is
+    at least as high as the LOWER of them, so when there are two or more the cell rises to the
+    second highest (to their mean, with half the variance, if the highest agrees with it:
+    ``(hi - second)^2 <= g^2 2 r``), and the highest, if apart, stays pending. One wild point far
+    above never raises a cell, and with a second observation it raises it only to that
+    observation; over a wall's points the cell climbs to the second highest, i.e. to the wall's top.
+    With a single observation it becomes the pending height (the higher of it and the old one).
+
+    A pending height keeps no variance: where it is the second highest, the variance of this
+    batch's highest stands in for it. Returns (raised (K,) bool, height, variance, pending after);
+    height and variance are meaningful where raised (a raised cell counts two points).
     """
-    return np.where(accepted_w >= rejected_w, 0.0, d + rejected_w - accepted_w)
+    has_p = np.isfinite(pending)
+    hi = np.fmax(pending, h1)
+    # Second highest of {pending, h1, h2}, and the variance that goes with it.
+    p_second = has_p & (pending < h1) & ~(pending < h2)
+    second = np.where(has_p & (pending >= h1), h1, np.where(p_second, pending, h2))
+    v_second = np.where(has_p & (pending >= h1), r1, np.where(p_second, r1, r2))
+    raised = np.isfinite(second)
+    d = hi - second
+    with np.errstate(invalid="ignore"):
+        agree = raised & (d * d <= n_sigma * n_sigma * 2.0 * v_second)
+    height = np.where(agree, 0.5 * (hi + second), second)
+    variance = np.where(agree, 0.5 * v_second, v_second)
+    pending_after = np.where(agree, np.nan, hi)
+    return raised, height, variance, pending_after
 
 
 def fuse_information(

@@ -1,7 +1,8 @@
 """The terrain evidence grid: tiles created on demand in the local NED frame (seed 000, II.E).
 
-Storage: one pool of tile layers ``(capacity, T, T)`` (height f32, variance f32, count u32,
-disagreement f32 = 16 bytes a cell) and a sorted array of packed tile keys, so every batched
+Storage: one pool of tile layers ``(capacity, T, T)`` (height f32, variance f32, count u32, and
+the fusion state: disagreement f32 (evidence from below) and pending f32 (a higher height waiting
+for confirmation, NaN none); 20 bytes a cell) and a sorted array of packed tile keys, so every batched
 operation is one ``searchsorted`` plus fancy indexing, and memory follows the tiles that exist
 (the area observed), never a bounding box. Fusion rules: :mod:`companion.terrain.fusion`.
 """
@@ -37,13 +38,20 @@ def unpack_key(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True, slots=True)
 class InsertStats:
-    """Outcome of one :meth:`TerrainGrid.insert` (counts of points unless named cells)."""
+    """Outcome of one :meth:`TerrainGrid.insert` (counts of points unless named cells).
+
+    inserted: points that changed some cell's height (agreeing, or confirming a higher surface).
+    rejected_outlier: valid points that changed no height: below every cell they touch (counted
+    as disagreement), or above and not yet confirmed (kept as the cell's pending height).
+    cells_touched: cells the batch reached; cells_raised: cells that took a higher surface;
+    cells_reset: cells brought down by persistent evidence from below."""
 
     inserted: int = 0
     rejected_invalid: int = 0
     rejected_outlier: int = 0
     rejected_imprecise: int = 0
     cells_touched: int = 0
+    cells_raised: int = 0
     cells_reset: int = 0
 
 
@@ -91,8 +99,9 @@ class TerrainGrid:
         min_height_sigma_m: float = 0.05,
         max_horizontal_sigma_m: float = 2.0,
         gate_sigma: float = 3.0,
+        below_gate_sigma: float = 3.0,
         gate_min_count: int = 2,
-        reset_evidence: float = 3.0,
+        reset_evidence: float = 20.0,
         process_noise_m2: float = 1e-4,
         max_abs_coordinate_m: float = 1e6,
     ) -> None:
@@ -109,6 +118,7 @@ class TerrainGrid:
         self.min_height_sigma_m = float(min_height_sigma_m)
         self.max_horizontal_sigma_m = float(max_horizontal_sigma_m)
         self.gate_sigma = float(gate_sigma)
+        self.below_gate_sigma = float(below_gate_sigma)
         self.gate_min_count = int(gate_min_count)
         self.reset_evidence = float(reset_evidence)
         self.process_noise_m2 = float(process_noise_m2)
@@ -135,6 +145,7 @@ class TerrainGrid:
             min_height_sigma_m=cfg.min_height_sigma_m,
             max_horizontal_sigma_m=cfg.max_horizontal_sigma_m,
             gate_sigma=cfg.gate_sigma,
+            below_gate_sigma=cfg.below_gate_sigma,
             gate_min_count=cfg.gate_min_count,
             reset_evidence=cfg.reset_evidence,
             process_noise_m2=cfg.process_noise_m2,
@@ -148,15 +159,16 @@ class TerrainGrid:
         self._h = np.full((capacity, t, t), np.nan, dtype=np.float32)
         self._v = np.full((capacity, t, t), np.inf, dtype=np.float32)
         self._n = np.zeros((capacity, t, t), dtype=np.uint32)
-        self._d = np.zeros((capacity, t, t), dtype=np.float32)
+        self._d = np.zeros((capacity, t, t), dtype=np.float32)  # evidence from below (points)
+        self._p = np.full((capacity, t, t), np.nan, dtype=np.float32)  # pending higher height (m)
 
     def _grow(self, needed: int) -> None:
         cap = len(self._h)
         if needed <= cap:
             return
-        old = (self._h, self._v, self._n, self._d)
+        old = (self._h, self._v, self._n, self._d, self._p)
         self._alloc(max(needed, cap + cap // 2, 16))
-        for new, o in zip((self._h, self._v, self._n, self._d), old):
+        for new, o in zip((self._h, self._v, self._n, self._d, self._p), old):
             new[: self._n_tiles] = o[: self._n_tiles]
 
     def _slots_of(self, keys: np.ndarray) -> np.ndarray:
@@ -209,10 +221,11 @@ class TerrainGrid:
     # ----------------------------------------------------------------------------------- fusion
 
     def insert(self, points: TerrainPoints) -> InsertStats:
-        """Fuse a batch of converged points (docs/terrain.md, "Fusion"). Invalid points are counted
-        in ``rejected_invalid``; points whose horizontal sigma exceeds ``max_horizontal_sigma_m`` in
-        ``rejected_imprecise``; points the gate refused in every cell they touch in
-        ``rejected_outlier``. A malformed message (wrong shapes) raises ValueError."""
+        """Fuse a batch of converged points (docs/terrain.md, "Fusion"): each cell keeps its top
+        surface. Invalid points are counted in ``rejected_invalid``; points whose horizontal sigma
+        exceeds ``max_horizontal_sigma_m`` in ``rejected_imprecise``; points that changed no cell's
+        height (below, or above and not yet confirmed) in ``rejected_outlier``. A malformed message
+        (wrong shapes) raises ValueError."""
         pos = np.asarray(points.positions_ned_m, dtype=np.float64)
         cov = np.asarray(points.covariances, dtype=np.float64)
         if pos.ndim != 2 or pos.shape[1] != 3:
@@ -254,8 +267,8 @@ class TerrainGrid:
         h0 = self._h.reshape(-1)[pool_flat]
         v0 = self._v.reshape(-1)[pool_flat]
         n0 = self._n.reshape(-1)[pool_flat]
-        rejected = fusion.gate(hm, r, h0, v0, n0, self.gate_sigma, self.gate_min_count)
-        accepted = ~rejected
+        side = fusion.gate_side(hm, r, h0, v0, n0, self.gate_sigma, self.gate_min_count, self.below_gate_sigma)
+        agree, above, below = side == 0, side > 0, side < 0
 
         # Number the cells this batch touches 0..K-1 (batch tile * T^2 + cell in tile, compacted),
         # so every per-cell sum below is a bincount of length K.
@@ -269,45 +282,68 @@ class TerrainGrid:
         cell = cell_rank[local]
         k = len(touched)
         cell_flat = batch_slots[touched // t2] * t2 + touched % t2
-        a_w = np.bincount(cell, weights=w * accepted, minlength=k)
-        j_w = np.bincount(cell, weights=w * rejected, minlength=k)
-        d1 = fusion.disagreement_update(self._d.reshape(-1)[cell_flat], a_w, j_w)
-        reset = d1 >= self.reset_evidence
+        inv_r = 1.0 / r
 
-        # Information of the accepted pairs; at a reset cell, of the rejected (new) ones instead.
-        use = np.where(reset[cell], rejected, accepted) if reset.any() else accepted
-        inv_r = use / r
-        info = np.bincount(cell, weights=inv_r, minlength=k)
-        info_h = np.bincount(cell, weights=hm * inv_r, minlength=k)
-        n_use = np.bincount(cell, weights=use, minlength=k)
+        # Agreeing pairs: the Kalman update. Pairs below: counted; persistent, they bring the cell down.
+        agree_r, below_r = agree * inv_r, below * inv_r
+        info = np.bincount(cell, weights=agree_r, minlength=k)
+        info_h = np.bincount(cell, weights=agree_r * hm, minlength=k)
+        n_agree = np.bincount(cell, weights=agree, minlength=k)
+        h_new = self._h.reshape(-1)[cell_flat].astype(np.float64)
+        v_new = self._v.reshape(-1)[cell_flat].astype(np.float64)
+        n_new = self._n.reshape(-1)[cell_flat].astype(np.float64)
+        pending = self._p.reshape(-1)[cell_flat].astype(np.float64)
+        d_new = self._d.reshape(-1)[cell_flat].astype(np.float64)
+        update = n_agree > 0
+        reset = np.zeros(k, dtype=bool)
+        if below.any():
+            d_new = fusion.disagreement_update(d_new, np.bincount(cell, weights=agree * w, minlength=k),
+                                               np.bincount(cell, weights=below * w, minlength=k))
+            reset = d_new >= self.reset_evidence
+            if reset.any():  # the lower heights become the cell's evidence, on an unknown prior
+                info[reset] = np.bincount(cell, weights=below_r, minlength=k)[reset]
+                info_h[reset] = np.bincount(cell, weights=below_r * hm, minlength=k)[reset]
+                n_agree[reset] = np.bincount(cell, weights=below, minlength=k)[reset]
+                v_new[reset], n_new[reset], d_new[reset], pending[reset] = np.inf, 0.0, 0.0, np.nan
+                update |= reset
+        elif update.any():
+            d_new[update] = 0.0
+        h1, v1 = fusion.fuse_information(h_new[update], v_new[update], info[update], info_h[update], self.process_noise_m2)
+        h_new[update], v_new[update] = h1, v1
+        n_new[update] += n_agree[update]
 
-        h_prior = self._h.reshape(-1)[cell_flat].astype(np.float64)
-        v_prior = self._v.reshape(-1)[cell_flat].astype(np.float64)
-        n_prior = self._n.reshape(-1)[cell_flat].astype(np.float64)
-        v_prior[reset] = np.inf
-        n_prior[reset] = 0.0
-        update = n_use > 0
-        h1, v1 = fusion.fuse_information(h_prior[update], v_prior[update], info[update], info_h[update], self.process_noise_m2)
-        upd_flat = cell_flat[update]
-        self._h.reshape(-1)[upd_flat] = h1
-        self._v.reshape(-1)[upd_flat] = v1
-        self._n.reshape(-1)[upd_flat] = np.minimum(n_prior[update] + n_use[update], _COUNT_MAX)
-        self._d.reshape(-1)[cell_flat] = np.where(reset, 0.0, d1)
-        if len(h1):
-            self._h_lo = min(self._h_lo, float(h1.min()))
-            self._h_hi = max(self._h_hi, float(h1.max()))
+        # Pairs above: a higher surface, taken once confirmed; else it waits as the pending height.
+        raised = np.zeros(k, dtype=bool)
+        if above.any():
+            up = np.flatnonzero(above)
+            h1, r1, h2, r2 = fusion.highest_two(cell[up], hm[up], r[up], k)
+            raised, h_r, v_r, pending = fusion.confirm_raise(h1, r1, h2, r2, pending, self.gate_sigma)
+            h_new[raised], v_new[raised], n_new[raised], d_new[raised] = h_r[raised], v_r[raised], 2.0, 0.0
+
+        self._h.reshape(-1)[cell_flat] = h_new
+        self._v.reshape(-1)[cell_flat] = v_new
+        self._n.reshape(-1)[cell_flat] = np.minimum(n_new, _COUNT_MAX)
+        self._d.reshape(-1)[cell_flat] = d_new
+        self._p.reshape(-1)[cell_flat] = pending
+        changed = update | raised
+        if changed.any():
+            hc = h_new[changed]
+            self._h_lo = min(self._h_lo, float(hc.min()))
+            self._h_hi = max(self._h_hi, float(hc.max()))
 
         # Every tile of the batch holds at least one touched cell.
         self._dirty.update(self._slot_key[s] for s in batch_slots.tolist())
-        used_points = np.bincount(p, weights=use, minlength=len(pos)) > 0
+        used_pair = np.where(reset[cell], below, agree) | (above & raised[cell])
+        used_points = np.bincount(p, weights=used_pair, minlength=len(pos)) > 0
         n_used = int(np.count_nonzero(used_points))
         return InsertStats(
             inserted=n_used,
             rejected_invalid=n_invalid,
             rejected_outlier=int(len(pos) - n_used),
             rejected_imprecise=n_imprecise,
-            cells_touched=int(np.count_nonzero(update)),
-            cells_reset=int(np.count_nonzero(reset)),
+            cells_touched=k,
+            cells_raised=int(np.count_nonzero(raised)),
+            cells_reset=int(np.count_nonzero(reset & ~raised)),
         )
 
     # ---------------------------------------------------------------------------------- queries
@@ -469,6 +505,7 @@ class TerrainGrid:
         return Tile(
             tx, ty, self._h[slot].copy(), self._v[slot].copy(), self._n[slot].copy(), self.cell_size_m,
             self._d[slot].copy() if with_disagreement else None,
+            self._p[slot].copy() if with_disagreement else None,
         )
 
     def tiles(self, *, with_disagreement: bool = False) -> Iterator[Tile]:
@@ -485,6 +522,7 @@ class TerrainGrid:
         slot = int(self._ensure_tiles(pack_key(np.array([tile.tx]), np.array([tile.ty])))[0])
         self._h[slot], self._v[slot], self._n[slot] = tile.height, tile.variance, tile.count
         self._d[slot] = 0.0 if tile.disagreement is None else tile.disagreement
+        self._p[slot] = np.nan if tile.pending is None else tile.pending
         known = tile.count > 0
         if known.any():
             hk = tile.height[known]
@@ -494,7 +532,7 @@ class TerrainGrid:
 
     def memory_bytes(self) -> int:
         """Bytes held by the map: the tile pool as allocated plus the key index."""
-        pool = self._h.nbytes + self._v.nbytes + self._n.nbytes + self._d.nbytes
+        pool = self._h.nbytes + self._v.nbytes + self._n.nbytes + self._d.nbytes + self._p.nbytes
         return int(pool + self._keys.nbytes + self._key_slots.nbytes + 64 * len(self._slot_key))
 
     def observed_area_m2(self) -> float:

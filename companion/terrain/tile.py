@@ -21,8 +21,10 @@ class Tile:
     variance: (T, T) float32, variance of ``height`` (m^2); +inf where unknown.
     count: (T, T) uint32, evidence count (points that contributed to the cell).
     cell_size_m: edge of a cell (m).
-    disagreement: optional (T, T) float32, rejected evidence not yet contradicted (internal fusion
-        state, carried by snapshots so a restart resumes exactly; not published).
+    disagreement: optional (T, T) float32, evidence from below the cell not yet contradicted (points);
+    pending: optional (T, T) float32, a higher height seen once and waiting for confirmation (m, NaN
+        none). Both are internal fusion state (docs/terrain.md, "Fusion"), carried by snapshots so
+        a restart resumes exactly; never published.
     """
 
     tx: int
@@ -32,12 +34,14 @@ class Tile:
     count: np.ndarray
     cell_size_m: float = 1.0
     disagreement: np.ndarray | None = None
+    pending: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = self.height.shape
         if len(t) != 2 or t[0] != t[1] or t[0] < 1:
             raise ValueError(f"tile layers must be square (T, T), got height {t}")
-        for name in ("variance", "count") + (("disagreement",) if self.disagreement is not None else ()):
+        optional = tuple(n for n in ("disagreement", "pending") if getattr(self, n) is not None)
+        for name in ("variance", "count") + optional:
             if getattr(self, name).shape != t:
                 raise ValueError(f"tile layer '{name}' has shape {getattr(self, name).shape}, expected {t}")
         if not (np.isfinite(self.cell_size_m) and self.cell_size_m > 0):
@@ -73,10 +77,11 @@ class Tile:
         layers = ("height", "variance", "count")
         if (self.tx, self.ty, self.cell_size_m) != (other.tx, other.ty, other.cell_size_m):
             return False
-        if (self.disagreement is None) != (other.disagreement is None):
-            return False
-        if self.disagreement is not None:
-            layers += ("disagreement",)
+        for name in ("disagreement", "pending"):
+            if (getattr(self, name) is None) != (getattr(other, name) is None):
+                return False
+            if getattr(self, name) is not None:
+                layers += (name,)
         return all(
             getattr(self, n).dtype == getattr(other, n).dtype
             and getattr(self, n).tobytes() == getattr(other, n).tobytes()

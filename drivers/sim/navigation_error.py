@@ -17,10 +17,17 @@ stationary covariance) and started from its stationary law, so its marginal cova
 ``diag(sigma^2)`` at every instant, not only asymptotically.
 
 Attitude (rotation vector in NED, ``R_true = Exp(e_att) R_est`` as in
-companion.messages.NavState): a first-order Gauss-Markov process per axis,
-``e_{k+1} = phi e_k + sqrt(1 - phi^2) sigma w_k``, ``phi = exp(-dt / tau)``. Equal roll and pitch
-sigmas make the roll/pitch/yaw variances PX4 reports the same numbers to first order whatever the
-heading.
+companion.messages.NavState): per axis the same critically damped second-order process as
+position/velocity, with the attitude error's rate as its hidden second state and
+``w = 2 / tau`` (``tau`` = ``att_tau_s``, the integral correlation time: the autocorrelation
+``(1 + w t) exp(-w t)`` integrates to ``2 / w``). A real EKF's attitude error is smooth: it is the
+integral of a gyro bias error, corrected a little at each fusion, so it wanders over seconds and
+does not jump from one camera frame to the next. A first-order (Ornstein-Uhlenbeck) process with
+the same sigma and tau changes by ``sigma sqrt(2 dt / tau)`` per step, a random walk at small
+scales: 0.23 deg of yaw between two frames at 15 Hz for the default 2 deg and 10 s, which a
+camera mapper sees as image motion no real vehicle has. This one changes by about
+``sigma w dt`` (0.03 deg). Equal roll and pitch sigmas make the roll/pitch/yaw variances PX4
+reports the same numbers to first order whatever the heading.
 
 What is reported (PX4's ODOMETRY diagonal, ESTIMATOR_STATUS accuracies; ArduPilot's GPS_RAW_INT
 accuracies) is ``diag(sigma^2)``, so the normalised estimation error squared ``e^T P^-1 e`` is
@@ -51,7 +58,8 @@ class NavErrorSpec:
     """Stationary sigmas of the 9 error components and the attitude correlation times.
 
     sigma: (9,) [pos N, E, D (m), vel N, E, D (m/s), att N, E, D (rad)].
-    att_tau_s: (3,) seconds. Position/velocity time constants follow from the sigmas
+    att_tau_s: (3,) seconds, the integral correlation time of each attitude axis (its process
+    has ``w = 2 / tau``). Position/velocity time constants follow from the sigmas
     (``sigma_p / sigma_v`` per axis).
     """
 
@@ -90,6 +98,11 @@ class NavErrorSpec:
         s = np.asarray(self.sigma)
         return np.divide(s[VEL], s[POS], out=np.zeros(3), where=s[POS] > 0)
 
+    @property
+    def attitude_omega(self) -> np.ndarray:
+        """(3,) natural frequency ``w = 2 / tau`` of each attitude axis' critically damped process."""
+        return 2.0 / np.asarray(self.att_tau_s, float)
+
 
 def critically_damped_transition(omega: np.ndarray, dt: float) -> np.ndarray:
     """exp(A dt) for A = [[0, 1], [-w^2, -2w]]: (3,) omegas -> (3, 2, 2)."""
@@ -103,8 +116,24 @@ def critically_damped_transition(omega: np.ndarray, dt: float) -> np.ndarray:
     return F
 
 
+def stationary_discretisation(omega: np.ndarray, sigma: np.ndarray, sigma_rate: np.ndarray,
+                              dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(F, chol(Q)), each (3, 2, 2), of three critically damped processes [e, de/dt] whose stationary
+    covariance is ``diag(sigma^2, sigma_rate^2)`` (``sigma_rate = w sigma``): ``Q = P - F P F^T``."""
+    F = critically_damped_transition(omega, dt)
+    P = np.zeros((3, 2, 2))
+    P[:, 0, 0] = np.square(sigma)
+    P[:, 1, 1] = np.square(sigma_rate)
+    Q = P - F @ P @ np.swapaxes(F, -1, -2)
+    Q = 0.5 * (Q + np.swapaxes(Q, -1, -2))
+    # Q is PSD; a tiny jitter keeps the Cholesky factor real where a sigma is zero
+    return F, np.linalg.cholesky(Q + 1e-18 * np.eye(2))
+
+
 class GaussMarkovNavError:
-    """The injected error e (9,), advanced with ``step(dt)``; exact discretisation for any dt."""
+    """The injected error e (9,), advanced with ``step(dt)``; exact discretisation for any dt.
+
+    ``attitude_rate_error`` (3,) is the hidden second state of the attitude process (rad/s)."""
 
     def __init__(self, spec: NavErrorSpec, rng: np.random.Generator):
         self.spec = spec
@@ -112,33 +141,32 @@ class GaussMarkovNavError:
         self._sigma = np.asarray(spec.sigma, float)
         self._tau = np.asarray(spec.att_tau_s, float)
         self._omega = spec.pos_vel_omega
-        self._cache: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._att_omega = spec.attitude_omega
+        self._att_rate_sigma = self._att_omega * self._sigma[ATT]
+        self._cache: tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.e = self._sigma * rng.standard_normal(9)
+        self.attitude_rate_error = self._att_rate_sigma * rng.standard_normal(3)
 
     def _discrete(self, dt: float):
-        """(F (3,2,2), chol(Q) (3,2,2), attitude phi (3,)) for this dt (cached: dt is usually fixed)."""
+        """(F, chol(Q)) of position/velocity and of attitude/attitude rate, each (3, 2, 2), for
+        this dt (cached: dt is usually fixed)."""
         if self._cache is None or self._cache[0] != dt:
-            F = critically_damped_transition(self._omega, dt)
-            P = np.zeros((3, 2, 2))
-            P[:, 0, 0] = self._sigma[POS] ** 2
-            P[:, 1, 1] = self._sigma[VEL] ** 2
-            Q = P - F @ P @ np.swapaxes(F, -1, -2)
-            Q = 0.5 * (Q + np.swapaxes(Q, -1, -2))
-            # Q is PSD; a tiny jitter keeps the Cholesky factor real where a sigma is zero
-            L = np.linalg.cholesky(Q + 1e-18 * np.eye(2))
-            phi = np.exp(-dt / self._tau)
-            self._cache = (dt, F, L, phi)
+            F, L = stationary_discretisation(self._omega, self._sigma[POS], self._sigma[VEL], dt)
+            Fa, La = stationary_discretisation(self._att_omega, self._sigma[ATT], self._att_rate_sigma, dt)
+            self._cache = (dt, F, L, Fa, La)
         return self._cache[1:]
 
     def step(self, dt: float) -> None:
         if not dt > 0:
             raise ValueError(f"GaussMarkovNavError.step needs dt > 0, got {dt!r}")
-        F, L, phi = self._discrete(dt)
-        w = self.rng.standard_normal(9)
+        F, L, Fa, La = self._discrete(dt)
+        w = self.rng.standard_normal(12)
         pv = np.stack([self.e[POS], self.e[VEL]], axis=-1)  # (3, 2): per axis [e_p, e_v]
         pv = (F @ pv[..., None])[..., 0] + (L @ w[:6].reshape(3, 2)[..., None])[..., 0]
         self.e[POS], self.e[VEL] = pv[:, 0], pv[:, 1]
-        self.e[ATT] = phi * self.e[ATT] + np.sqrt(1.0 - phi * phi) * self._sigma[ATT] * w[6:]
+        ar = np.stack([self.e[ATT], self.attitude_rate_error], axis=-1)  # (3, 2): per axis [e_att, rate]
+        ar = (Fa @ ar[..., None])[..., 0] + (La @ w[6:].reshape(3, 2)[..., None])[..., 0]
+        self.e[ATT], self.attitude_rate_error = ar[:, 0], ar[:, 1]
 
     @property
     def position_error_m(self) -> np.ndarray:
