@@ -252,7 +252,13 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path):
     print(f"{len(listener.tiles)} tiles, {err.size} cells: median |error| {np.median(np.abs(err)):.2f} m, "
           f"90th percentile {np.percentile(np.abs(err), 90):.2f} m; control {status['control']}")
     assert err.size > 200
-    assert np.median(np.abs(err)) < 0.5
+    # Against the truth the map carries the navigation error of the pass: the simulator injects a
+    # slowly varying error (0.8 m vertical sigma, smooth attitude error; drivers/sim/navigation_error.py),
+    # common to the points of a few seconds. Its shape (spread about the common offset) is the mapper's.
+    bias = np.median(err)
+    print(f"offset {bias:+.2f} m, spread about it: median {np.median(np.abs(err - bias)):.2f} m")
+    assert abs(bias) < 2 * 0.8
+    assert np.median(np.abs(err - bias)) < 0.5
     assert np.percentile(np.abs(err), 90) < 2.0
 
 

@@ -318,12 +318,6 @@ def test_demo_flies_both_parameterisations_and_writes_the_report(demo_run):
         assert (demo_run.out / "runs" / p / "trajectory.csv").exists()
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "not met reliably yet. Measured 2026-11-22, full demo x3, 3 laps, same code base within the hour: run A: inverse "
-    "depth 7.2/7.9/8.4 m mapped, clearance 8.7/12.8/12.7 m, Cartesian 4.4/6.4/7.8 m (criteria met); run B (final "
-    "mapper): inverse depth 6.8/7.1/7.6 m, clearance 6.5/11.5/11.2 m, Cartesian 6.2/7.3/7.8 m (clearance below "
-    "0.8 x 15 m and Cartesian not worse). The map holds only the south wall (plain roof), so clearance over the roof "
-    "rests on the mapped wall height; run-to-run spread comes from timing (frames dropped, nav error draws)."))
 @pytest.mark.slow
 def test_demo_meets_the_issue_criteria(demo_run):
     """The issue: once the building is mapped (in time for the law to climb), clearance stays at
