@@ -463,10 +463,11 @@ def fly(record: RunRecord, opts, world, obstacle, pilot: Pilot, station, daemon,
         time.sleep(0.02)
     if engaged and last_engaged_t is not None:
         record.engaged_time_s += pilot.sim_time_s - last_engaged_t
+    last = station.map.status or record.status or {}  # the service's last status (record.status comes later)
     progress.done(progress_line(record.parameterisation, counter.laps, opts.laps, pilot.sim_time_s,
                                 pilot.truth.alt_m[-1], len(station.map.tiles),
-                                int(((record.status or {}).get("mapper") or {}).get("frames_mapped", 0)),
-                                int(((record.status or {}).get("camera") or {}).get("queue_dropped", 0)),
+                                int((last.get("mapper") or {}).get("frames_mapped", 0)),
+                                int((last.get("camera") or {}).get("queue_dropped", 0)),
                                 engaged, time.monotonic() - wall0, 0.0))
     return True, ""
 
@@ -539,6 +540,7 @@ def run_metrics(rec: RunRecord, world, obstacle, clearance_m: float) -> dict[str
             "mapped_in_time": report.mapped_in_time(detected_t, crossing.entered_t_s, needed_s),
             "max_alt_m": _num(np.max(alt[sl])),
             "max_height_above_terrain_m": _num(np.max(agl)),
+            "cruise_height_over_flat_m": _num(report.height_over_flat_ground(ne[sl], alt[sl], world.terrain_height)[0]),
             "map_rmse_m": _num(err.rmse_m),
             "service_lap_end_t_s": _num(rec.service_laps[k], 2) if k < len(rec.service_laps) else None,
         })
@@ -748,6 +750,7 @@ def build_metrics(records: dict[str, RunRecord], world, obstacle, opts, wall_s: 
         "paper": {"mapped_fraction_of_height": report.PAPER_MAPPED_FRACTION,
                   "note": "Magree, Mooney, Johnson, section IV: the 40 ft structure (texture to ~30 ft) was mapped at about 30 ft"},
         "definitions": {
+            "cruise_height_over_flat_m": "median (altitude - true terrain) over the lap where the terrain is flat within 15 m (nominal altitude + the 2-sigma map margin)",
             "min_clearance_m": "least (altitude - true terrain) while the true position is over the obstacle's footprint, per lap",
             "mapped_obstacle_height_m": "95th percentile of the mapped heights of the footprint cells (grown by one cell) "
                                         "holding >= 2 points, in the ground station's map at the lap's end",

@@ -320,6 +320,26 @@ def mapped_height_over_footprint(raster: MapRaster, polygon: np.ndarray, min_cou
     return MappedHeight(float(np.quantile(h, quantile)), float(h.max()), int(h.size), int(mask.sum()))
 
 
+def height_over_flat_ground(ne: np.ndarray, alt_m: np.ndarray, terrain_fn: TerrainFn,
+                            radius_m: float = 15.0) -> tuple[float, int]:
+    """Median height above the terrain (m) of the samples whose true terrain is flat within
+    ``radius_m`` (the same height at the sample and at 8 points around it): how high the vehicle
+    cruises where nothing asks it to climb, to set beside the nominal altitude. Returns the median
+    (NaN without such samples) and the number of samples. ne (N, 2), alt_m (N,)."""
+    ne = np.asarray(ne, float).reshape(-1, 2)
+    alt = np.asarray(alt_m, float).reshape(-1)
+    if len(ne) == 0:
+        return math.nan, 0
+    here = np.asarray(terrain_fn(ne[:, 0], ne[:, 1]), float)
+    flat = np.ones(len(ne), bool)
+    for dn in (-radius_m, 0.0, radius_m):
+        for de in (-radius_m, 0.0, radius_m):
+            flat &= np.asarray(terrain_fn(ne[:, 0] + dn, ne[:, 1] + de), float) == here
+    if not flat.any():
+        return math.nan, 0
+    return float(np.median(alt[flat] - here[flat])), int(flat.sum())
+
+
 def mapped_in_time(detected_t_s: float, crossing_t_s: float, needed_s: float) -> bool:
     """Was the obstacle in the map early enough? ``detected`` at least ``needed_s`` (the law's
     time to climb from the nominal altitude to the obstacle plus clearance,

@@ -219,6 +219,18 @@ def test_lap_profile_samples_truth_and_map_along_the_path():
     assert np.isnan(p.mapped_terrain_m[p.distance_m > 300]).all()  # the map covers the first leg only
 
 
+def test_height_over_flat_ground_leaves_out_samples_near_structures():
+    path = circuit_path(1)
+    alt = np.where((path[:, 0] > 70) & (path[:, 0] < 130) & (np.abs(path[:, 1]) < 30), 27.0, 17.0)
+    median, n = report.height_over_flat_ground(path, alt, box_terrain())
+    assert median == pytest.approx(17.0) and 0.7 * len(path) < n < len(path)
+    # Over the box itself the height counts above the roof, but those samples are not flat around.
+    near = (path[:, 0] > 75) & (path[:, 0] < 125) & (np.abs(path[:, 1]) < 25)
+    _, n_far = report.height_over_flat_ground(path[~near], alt[~near], box_terrain())
+    assert n_far == n
+    assert np.isnan(report.height_over_flat_ground(np.zeros((0, 2)), np.zeros(0), box_terrain())[0])
+
+
 def test_criteria_judge_laps_mapped_in_time_and_compare_parameterisations():
     laps = [dict(min_clearance_m=4.0, mapped_obstacle_height_m=6.0, mapped_in_time=False),
             dict(min_clearance_m=12.5, mapped_obstacle_height_m=8.5, mapped_in_time=True),
