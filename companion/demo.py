@@ -236,6 +236,10 @@ class Pilot:
 
         if not any("origin set" in t for t in self.statustexts):
             self.wait("no EKF origin", lambda m: m.get_type() == "STATUSTEXT" and "origin set" in m.text, 30.0)
+        # ArduPilot refuses to arm ("PreArm: Need Position Estimate") until its EKF uses GPS, which
+        # comes after the origin (real SITL: about 21 s later): wait for it rather than retry arming.
+        if not any("using GPS" in t for t in self.statustexts):
+            self.wait("no GPS use by the EKF", lambda m: m.get_type() == "STATUSTEXT" and "using GPS" in m.text, 60.0)
         self.command("GUIDED", mav.MAV_CMD_DO_SET_MODE, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, self.GUIDED)
         self.command("arming", mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
         self.command("takeoff", mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, altitude_m)
