@@ -174,7 +174,7 @@ def _wait(pred, timeout_s: float, poll_s: float = 0.1) -> bool:
 def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=print, daemon_cores: str = "1",
                          sim_cores: str = "0", switch_interval_s: float | None = None,
                          keep_samples: str | None = None, worker_policy: str = "default",
-                         mapper_process: bool = False) -> dict:
+                         mapper_process: bool = False, camera: str = "stream") -> dict:
     """Fly the circuit with the daemon mapping at ``rate_hz`` for ``duration_s`` after take-off;
     returns the daemon's control figures (and what went wrong, if anything).
 
@@ -185,17 +185,23 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
     samples (JSON, :mod:`benchmarks.daemon_probe`) to this path. ``worker_policy``: "idle" or
     "nice" lowers the mapper and render threads' priority (an experiment; see the probe).
     ``mapper_process``: run the daemon's mapper in a child process (companion/mapper_process.py)
-    instead of its worker thread."""
+    instead of its worker thread. ``camera``: "stream" (default) = the simulator renders the camera
+    at the true pose of each exposure and sends the frames over TCP stamped in the autopilot's time
+    (``companion sim --camera-listen``; the camera has its own hardware, as on a vehicle);
+    "synthetic" = the daemon renders them itself from SIM_STATE, in its own process."""
+    if camera not in ("stream", "synthetic"):
+        raise ValueError(f"camera must be 'stream' or 'synthetic', got {camera!r}")
     from drivers.sim.harness import MavClient, SimVehicleProcess
 
     result: dict = {"duration_s": duration_s, "camera_rate_hz": rate_hz, "error": "", "daemon_cores": daemon_cores,
                     "sim_cores": sim_cores, "switch_interval_s": switch_interval_s, "worker_policy": worker_policy,
-                    "mapper_process": mapper_process}
+                    "mapper_process": mapper_process, "camera": camera}
     tmp = tempfile.TemporaryDirectory(prefix="companion-bench-")
     pilot_client = MavClient.udp_listener()
     sim = SimVehicleProcess(["--flavour", "ardupilot", "--scenario", "default", "--tcp-listen", "127.0.0.1:0",
                              "--udp-out", f"127.0.0.1:{pilot_client.port}", "--speedup", "1",
-                             "--origin-delay", "0.5", "--log-level", "WARNING"],
+                             "--origin-delay", "0.5", "--log-level", "WARNING"]
+                            + (["--camera-listen", "127.0.0.1:0", "--camera-rate", str(rate_hz)] if camera == "stream" else []),
                             command=launcher("companion.cli", sim_cores) + ["sim"], stderr_path=os.path.join(tmp.name, "sim.log"))
     daemon = listener = pilot = None
     daemon_log = os.path.join(tmp.name, "daemon.log")
@@ -205,6 +211,8 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
         sim.start()
         zenoh_port = free_port()
         cfg = daemon_config(sim.endpoints["tcp"], zenoh_port, os.path.join(tmp.name, "map"), rate_hz)
+        if camera == "stream":
+            cfg["camera"].update(source="stream", stream_address=f"127.0.0.1:{sim.endpoints['camera']}")
         cfg_path = os.path.join(tmp.name, "bench.yaml")
         with open(cfg_path, "w") as f:
             yaml.safe_dump(cfg, f)

@@ -89,8 +89,9 @@ class NavConfig:
 class CameraConfig:
     """Camera source, pinhole intrinsics (pixels), OpenCV distortion and the mount on the body."""
 
-    source: Literal["v4l2", "file", "synthetic"] = _f("synthetic")
+    source: Literal["v4l2", "file", "synthetic", "stream"] = _f("synthetic", doc="synthetic = rendered in this process from the simulator's truth; stream = frames over TCP stamped in the autopilot's time (companion sim --camera-listen; docs/cameras.md)")
     device: str = _f("/dev/video0", doc="V4L2 device path or index")
+    stream_address: str = _f("127.0.0.1:5600", doc="stream source: HOST:PORT of the frame stream server")
     path: str = _f("", doc="recorded source: video file or image folder")
     realtime: bool = _f(True, doc="recorded source: replay at the recorded rate (false = as fast as possible)")
     width: int = _f(640, "px", 16, 8192)

@@ -299,6 +299,11 @@ class Daemon:
             from drivers.cameras.synthetic import synthetic_camera_from_config
 
             return synthetic_camera_from_config(self.cfg, self.clock, self._truth_pose)
+        if self.cfg.camera.source == "stream":
+            from drivers.cameras.stream import StreamCamera
+
+            c = self.cfg.camera
+            return StreamCamera(c.stream_address, self.clock, self.link.timesync.to_companion, c.width, c.height)
         from drivers.cameras.factory import build_camera
 
         return build_camera(self.cfg.camera, self.clock)

@@ -171,12 +171,19 @@ def test_camera_end_and_vehicle_restart_keep_the_service_alive(tmp_path):
         sim.stop()
 
 
-def start_flight(tmp: Path, speedup: float, *daemon_args: str, **sections):
-    """A simulated vehicle with an operator's pymavlink link, and the daemon commanding the circuit."""
+def start_flight(tmp: Path, speedup: float, *daemon_args: str, camera: str = "synthetic", **sections):
+    """A simulated vehicle with an operator's pymavlink link, and the daemon commanding the circuit.
+
+    camera: "synthetic" (rendered in the daemon from SIM_STATE) or "stream" (rendered by the simulator
+    process and sent over TCP, stamped in the autopilot's time: ``companion sim --camera-listen``)."""
     pilot = MavClient.udp_listener()
+    extra = ["--camera-listen", "127.0.0.1:0", "--camera-rate", "15"] if camera == "stream" else []
     sim = SimVehicleProcess(["--scenario", "default", "--tcp-listen", "127.0.0.1:0",
-                             "--udp-out", f"127.0.0.1:{pilot.port}", "--speedup", str(speedup), "--origin-delay", "1"],
-                            stderr_path=str(tmp / "sim.log")).start()
+                             "--udp-out", f"127.0.0.1:{pilot.port}", "--speedup", str(speedup), "--origin-delay", "1",
+                             *extra], stderr_path=str(tmp / "sim.log")).start()
+    if camera == "stream":
+        sections["camera"] = {"source": "stream", "stream_address": f"127.0.0.1:{sim.endpoints['camera']}",
+                              **sections.get("camera", {})}
     cfg = write_config(tmp / "c.yaml", daemon_config(
         tmp, f"tcp:127.0.0.1:{sim.endpoints['tcp']}",
         control={"commanding_enabled": True, "waypoints_ne_m": CIRCUIT, "cruise_speed_mps": 6.0},
@@ -186,15 +193,17 @@ def start_flight(tmp: Path, speedup: float, *daemon_args: str, **sections):
     return pilot, sim, daemon
 
 
-def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path):
+@pytest.mark.parametrize("camera", ["synthetic", "stream"])
+def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, camera):
     """Simulated vehicle + daemon + Zenoh subscriber, all real processes on loopback. The vehicle flies the
     default circuit's first leg toward the 12 m building; the daemon maps it and commands a climb before
-    reaching it; the subscriber's tiles agree with the world."""
+    reaching it; the subscriber's tiles agree with the world. With the camera rendered in the daemon
+    (synthetic) and in the simulator, its frames sent over TCP stamped in the autopilot's time (stream)."""
     world = World.load("default")
     building = next(o for o in world.obstacles if o.name == "building")
     zport = free_port()
-    pilot, sim, daemon = start_flight(tmp_path, 3.0, zenoh={"enabled": True, "listen": [f"tcp/127.0.0.1:{zport}"],
-                                                            "status_rate_hz": 2.0})
+    pilot, sim, daemon = start_flight(tmp_path, 3.0, camera=camera,
+                                      zenoh={"enabled": True, "listen": [f"tcp/127.0.0.1:{zport}"], "status_rate_hz": 2.0})
     listener = None
     try:
         listener = ZenohListener(f"tcp/127.0.0.1:{zport}")

@@ -32,4 +32,9 @@ def build_camera(config: CameraConfig, clock: Clock, **kwargs: Any) -> CameraSou
             "camera.source 'synthetic' is built by the daemon from the simulated world "
             "(drivers.cameras.synthetic needs the scenario and the vehicle state), not by build_camera"
         )
-    raise ConfigError(f"camera.source: unknown source {config.source!r} (v4l2, file, synthetic)")
+    if config.source == "stream":
+        raise ConfigError(
+            "camera.source 'stream' is built by the daemon (drivers.cameras.stream needs the autopilot link's "
+            "time synchronisation to place the frames on the companion clock), not by build_camera"
+        )
+    raise ConfigError(f"camera.source: unknown source {config.source!r} (v4l2, file, synthetic, stream)")

@@ -32,7 +32,7 @@ class SimVehicleProcess:
     stderr_path: str | None = None
 
     def start(self) -> "SimVehicleProcess":
-        links = sum(a in ("--tcp-listen", "--udp-in", "--udp-out") for a in self.args)
+        links = sum(a in ("--tcp-listen", "--udp-in", "--udp-out", "--camera-listen") for a in self.args)
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         self._stderr = open(self.stderr_path, "w") if self.stderr_path else subprocess.DEVNULL
         self.proc = subprocess.Popen(self.command + list(self.args), stdout=subprocess.PIPE,

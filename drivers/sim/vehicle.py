@@ -85,8 +85,10 @@ def home_from_scenario(scenario: str) -> Home:
 class VehicleProcess:
     """Owns the autopilot, its links and the pacing; ``run`` until ``stop`` is set."""
 
-    def __init__(self, autopilot: SimAutopilot, endpoints: list, speedup: float, duration_s: float | None = None):
+    def __init__(self, autopilot: SimAutopilot, endpoints: list, speedup: float, duration_s: float | None = None,
+                 camera=None):
         self.ap = autopilot
+        self.camera = camera  # drivers.sim.camera_server.CameraServer or None
         self.endpoints = endpoints
         self.links = {e.link.name: e.link for e in endpoints}
         self.clock = Clock(speedup)
@@ -132,15 +134,21 @@ class VehicleProcess:
         ap = self.ap
         steps = 0
         earliest = min((l.schedule.earliest_due_s for l in self.links.values()), default=math.inf)
+        camera = self.camera
         while ap.t_s + ap.dt <= target_s + 1e-12 and steps < MAX_STEPS_PER_TICK:
             ap.step()
             steps += 1
+            if camera is not None:
+                camera.tick(ap.t_s, self._true_pose)
             if ap.t_s >= earliest - 1e-9:
                 self._send_due()
                 earliest = min((l.schedule.earliest_due_s for l in self.links.values()), default=math.inf)
             if ap.outbox:
                 self._flush_outbox()
         return steps
+
+    def _true_pose(self):
+        return self.ap.vehicle.p, self.ap.vehicle.rotation_body_to_ned()
 
     async def run(self, stop: asyncio.Event) -> None:
         speedup = self.clock.speedup
@@ -179,13 +187,34 @@ async def _run(args, sim, home: Home) -> int:
         for e in endpoints:
             e.close()
         return 1
+    camera = None
+    if args.camera_listen:
+        from drivers.sim.camera_server import camera_server_from_config
+
+        cfg = load_config(args.config) if args.config else CompanionConfig()
+        cfg = dataclasses.replace(cfg, sim=sim)
+        host, port = parse_host_port(args.camera_listen, "--camera-listen")
+        camera = camera_server_from_config(cfg, host, port, args.camera_rate)
+        try:
+            await camera.start()
+        except OSError as exc:
+            print(f"companion sim: cannot open the camera stream: {exc}", file=sys.stderr)
+            camera.close()
+            for e in endpoints:
+                e.close()
+            return 1
+        endpoints_lines = [camera.describe()]
+    else:
+        endpoints_lines = []
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)  # before announcing: a client may signal at once
     for e in endpoints:
         print(e.describe(), flush=True)
-    process = VehicleProcess(ap, endpoints, sim.speedup, args.duration)
+    for line in endpoints_lines:
+        print(line, flush=True)
+    process = VehicleProcess(ap, endpoints, sim.speedup, args.duration, camera)
     log.info("%s vehicle sysid %d, speed-up %.1f, seed %d, origin after %.1f s, home %.6f %.6f %.1f m",
              ap.FLAVOUR, args.sysid, sim.speedup, ap.seed, sim.origin_delay_s, home.lat_deg, home.lon_deg, home.alt_m)
     wall0 = time.monotonic()
@@ -196,6 +225,11 @@ async def _run(args, sim, home: Home) -> int:
             loop.remove_signal_handler(sig)
         for e in endpoints:
             e.close()
+        if camera is not None:
+            camera.close()
+            log.info("camera stream: %d frames, %d ticks skipped (render busy), %d sends dropped (client behind), "
+                     "%d render errors", camera.frames_sent, camera.skipped_ticks, camera.dropped_sends,
+                     camera.render_errors)
     wall = time.monotonic() - wall0
     sent = sum(l.sent for l in process.links.values())
     log.info("stopped at t=%.1f s simulated after %.1f s wall (x%.1f), %d messages sent, %d setpoints received "
@@ -224,6 +258,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="override the scenario's home (deg, deg, m AMSL); write --home=-35.36,149.17,584 for a negative latitude")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any sim.* key, e.g. nav_vel_sigma_mps=0.5")
     p.add_argument("--duration", type=float, metavar="S", help="stop after this many simulated seconds")
+    p.add_argument("--camera-listen", metavar="HOST:PORT",
+                   help="serve the vehicle's camera as a frame stream (camera.source: stream; port 0 = ephemeral)")
+    p.add_argument("--camera-rate", type=float, metavar="HZ", help="frame stream rate in simulated Hz (default: camera.rate_hz)")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
 
 
@@ -270,6 +307,10 @@ def main(args: argparse.Namespace) -> int:
         for spec, what in [(s, "--udp-out") for s in args.udp_out or []] + [(s, "--udp-in") for s in args.udp_in or []] \
                 + [(s, "--tcp-listen") for s in args.tcp_listen or []]:
             parse_host_port(spec, what)
+        if args.camera_listen:
+            parse_host_port(args.camera_listen, "--camera-listen")
+        if args.camera_rate is not None and not (0.5 <= args.camera_rate <= 500.0):
+            raise ConfigError(f"--camera-rate must be within 0.5..500 Hz, got {args.camera_rate}")
     except (ConfigError, ValueError) as exc:
         print(f"companion sim: {exc}", file=sys.stderr)
         return 2

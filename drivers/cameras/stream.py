@@ -1,0 +1,156 @@
+"""A camera that sends its frames over a local TCP stream, stamped in the autopilot's time.
+
+What a companion computer sees of a camera that is triggered by (or synchronised with) the
+autopilot: each frame carries its exposure time on the autopilot's clock (``time_boot``, as in
+MAVLink's CAMERA_TRIGGER), and the service maps it to its own clock through the link's time
+synchronisation. The simulator serves such a camera (``companion sim --camera-listen``,
+:mod:`drivers.sim.camera_server`): it renders the world from the true pose at the exposure
+instant in its own process, as camera hardware would, so the service spends nothing on rendering.
+
+Wire format (docs/cameras.md, "Frame stream"), little-endian, one record per frame::
+
+    magic b"CMFR" | version u16 (1) | reserved u16 | time_boot_us u64 | sequence u32 |
+    width u16 | height u16 | payload_bytes u32 | payload (width x height 8-bit grey, row-major)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+from collections.abc import Callable
+
+import numpy as np
+
+from companion.clock import Clock
+from companion.messages import Frame
+from drivers.cameras.base import CameraError, CameraSource
+
+MAGIC = b"CMFR"
+VERSION = 1
+HEADER = struct.Struct("<4sHHQIHHI")  # 28 bytes
+MAX_SIDE_PX = 8192
+
+# autopilot time (s since its boot) -> companion time (s), or None while not synchronised
+TimeMap = Callable[[float], "float | None"]
+
+
+class FrameStreamError(ValueError):
+    """A record that is not a frame of this format (bad magic, version or sizes)."""
+
+
+def encode_frame(time_boot_us: int, sequence: int, image: np.ndarray) -> bytes:
+    """One record: header + the (H, W) uint8 image's bytes."""
+    img = np.ascontiguousarray(image)
+    if img.dtype != np.uint8 or img.ndim != 2:
+        raise ValueError(f"a stream frame is (H, W) uint8 grey, got {img.dtype} {img.shape}")
+    h, w = img.shape
+    if not (0 < w <= MAX_SIDE_PX and 0 < h <= MAX_SIDE_PX):
+        raise ValueError(f"frame size {w}x{h} outside 1..{MAX_SIDE_PX}")
+    return HEADER.pack(MAGIC, VERSION, 0, int(time_boot_us), int(sequence) & 0xFFFFFFFF, w, h, w * h) + img.tobytes()
+
+
+def decode_header(header: bytes) -> tuple[int, int, int, int, int]:
+    """(time_boot_us, sequence, width, height, payload_bytes) of a header; FrameStreamError if it
+    is not one (the stream is then out of step: drop the connection)."""
+    magic, version, _, t_us, seq, w, h, n = HEADER.unpack(header)
+    if magic != MAGIC:
+        raise FrameStreamError(f"bad magic {magic!r} (expected {MAGIC!r})")
+    if version != VERSION:
+        raise FrameStreamError(f"frame stream version {version}, this reader knows {VERSION}")
+    if not (0 < w <= MAX_SIDE_PX and 0 < h <= MAX_SIDE_PX) or n != w * h:
+        raise FrameStreamError(f"frame {w}x{h} with {n} payload bytes")
+    return t_us, seq, w, h, n
+
+
+def parse_address(address: str) -> tuple[str, int]:
+    """``HOST:PORT`` -> (host, port); ValueError naming the problem."""
+    host, sep, port = address.rpartition(":")
+    if not sep or not host:
+        raise ValueError(f"camera.stream_address: expected HOST:PORT, got {address!r}")
+    try:
+        p = int(port)
+    except ValueError:
+        raise ValueError(f"camera.stream_address: port must be a number, got {address!r}") from None
+    if not 1 <= p <= 65535:
+        raise ValueError(f"camera.stream_address: port must be 1..65535, got {p}")
+    return host, p
+
+
+class StreamCamera(CameraSource):
+    """Frames from a frame stream server (``camera.source: stream``), each stamped with its
+    exposure mapped to companion time by ``time_map``.
+
+    ``read()`` connects when needed and returns the next frame. Raises :class:`CameraError` (the
+    daemon waits and tries again) when the server cannot be reached or the connection ends, when a
+    record is malformed (the connection is dropped: the stream is out of step; counted in
+    ``bad_records``), and while the autopilot's time is not yet synchronised (frames then are
+    counted in ``unsynced_frames`` and dropped: without a time they cannot be paired with
+    navigation). Frames of another size than ``camera.width x height`` are refused the same way
+    (``wrong_size``).
+    """
+
+    name = "stream"
+
+    def __init__(self, address: str, clock: Clock, time_map: TimeMap, width: int, height: int,
+                 connect_timeout_s: float = 2.0):
+        self.host, self.port = parse_address(address)
+        self._clock = clock
+        self._time_map = time_map
+        self._size = (int(width), int(height))
+        self._connect_timeout_s = connect_timeout_s
+        self._reader: asyncio.StreamReader | None = None
+        self._writer: asyncio.StreamWriter | None = None
+        self._closed = False
+        self.connections = 0
+        self.bad_records = 0
+        self.unsynced_frames = 0
+        self.wrong_size = 0
+        self.frames = 0
+
+    async def _connect(self) -> asyncio.StreamReader:
+        try:
+            self._reader, self._writer = await asyncio.wait_for(
+                asyncio.open_connection(self.host, self.port), self._connect_timeout_s)
+        except (OSError, asyncio.TimeoutError) as exc:
+            raise CameraError(f"frame stream {self.host}:{self.port}: cannot connect ({exc or 'timeout'})") from exc
+        self.connections += 1
+        return self._reader
+
+    async def _drop_connection(self) -> None:
+        writer, self._reader, self._writer = self._writer, None, None
+        if writer is not None:
+            writer.close()
+            try:
+                await writer.wait_closed()
+            except OSError:
+                pass
+
+    async def read(self) -> Frame:
+        if self._closed:
+            raise CameraError("frame stream camera is closed")
+        while True:
+            reader = self._reader or await self._connect()
+            try:
+                t_us, seq, w, h, n = decode_header(await reader.readexactly(HEADER.size))
+                payload = await reader.readexactly(n)
+            except FrameStreamError as exc:
+                self.bad_records += 1
+                await self._drop_connection()
+                raise CameraError(f"frame stream {self.host}:{self.port}: {exc}; reconnecting") from exc
+            except (asyncio.IncompleteReadError, OSError) as exc:
+                await self._drop_connection()
+                raise CameraError(f"frame stream {self.host}:{self.port}: connection ended") from exc
+            if (w, h) != self._size:
+                self.wrong_size += 1
+                raise CameraError(f"frame stream sends {w}x{h}, camera.width x height is {self._size[0]}x{self._size[1]}")
+            t = self._time_map(t_us * 1e-6)
+            if t is None:
+                self.unsynced_frames += 1
+                continue  # no time yet: the next frame may have one
+            self.frames += 1
+            image = np.frombuffer(payload, np.uint8).reshape(h, w)
+            return Frame(t_s=float(t), image=image, sequence=int(seq), source="stream")
+
+    async def close(self) -> None:
+        self._closed = True
+        await self._drop_connection()
