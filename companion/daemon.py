@@ -302,8 +302,7 @@ class Daemon:
         if self.cfg.camera.source == "stream":
             from drivers.cameras.stream import StreamCamera
 
-            c = self.cfg.camera
-            return StreamCamera(c.stream_address, self.clock, self.link.timesync.to_companion, c.width, c.height)
+            return StreamCamera(self.cfg.camera, self.clock, self.link.timesync.to_companion)
         from drivers.cameras.factory import build_camera
 
         return build_camera(self.cfg.camera, self.clock)

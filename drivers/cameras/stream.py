@@ -22,8 +22,10 @@ from collections.abc import Callable
 import numpy as np
 
 from companion.clock import Clock
+from companion.config import CameraConfig
 from companion.messages import Frame
 from drivers.cameras.base import CameraError, CameraSource
+from drivers.cameras.checks import CameraStats, FrameChecker
 
 MAGIC = b"CMFR"
 VERSION = 1
@@ -85,18 +87,21 @@ class StreamCamera(CameraSource):
     record is malformed (the connection is dropped: the stream is out of step; counted in
     ``bad_records``), and while the autopilot's time is not yet synchronised (frames then are
     counted in ``unsynced_frames`` and dropped: without a time they cannot be paired with
-    navigation). Frames of another size than ``camera.width x height`` are refused the same way
-    (``wrong_size``).
+    navigation). Every frame then passes the frame checks of all sources (size, blank, time order,
+    gaps; docs/cameras.md): a rejected frame is counted in ``stats`` and skipped.
     """
 
     name = "stream"
 
-    def __init__(self, address: str, clock: Clock, time_map: TimeMap, width: int, height: int,
-                 connect_timeout_s: float = 2.0):
-        self.host, self.port = parse_address(address)
+    def __init__(self, config: CameraConfig, clock: Clock, time_map: TimeMap, connect_timeout_s: float = 2.0):
+        self.host, self.port = parse_address(config.stream_address)
+        self.name = f"stream:{self.host}:{self.port}"
         self._clock = clock
         self._time_map = time_map
-        self._size = (int(width), int(height))
+        self.stats = CameraStats()
+        self._checker = FrameChecker(config.width, config.height, self.stats, name=self.name,
+                                     nominal_period_s=1.0 / config.rate_hz, blank_std_max=config.blank_std_max,
+                                     gap_factor=config.gap_factor)
         self._connect_timeout_s = connect_timeout_s
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
@@ -104,8 +109,6 @@ class StreamCamera(CameraSource):
         self.connections = 0
         self.bad_records = 0
         self.unsynced_frames = 0
-        self.wrong_size = 0
-        self.frames = 0
 
     async def _connect(self) -> asyncio.StreamReader:
         try:
@@ -140,15 +143,13 @@ class StreamCamera(CameraSource):
             except (asyncio.IncompleteReadError, OSError) as exc:
                 await self._drop_connection()
                 raise CameraError(f"frame stream {self.host}:{self.port}: connection ended") from exc
-            if (w, h) != self._size:
-                self.wrong_size += 1
-                raise CameraError(f"frame stream sends {w}x{h}, camera.width x height is {self._size[0]}x{self._size[1]}")
             t = self._time_map(t_us * 1e-6)
             if t is None:
                 self.unsynced_frames += 1
                 continue  # no time yet: the next frame may have one
-            self.frames += 1
-            image = np.frombuffer(payload, np.uint8).reshape(h, w)
+            image = self._checker.admit(np.frombuffer(payload, np.uint8).reshape(h, w), float(t))
+            if image is None:
+                continue  # counted in stats and logged by the checker
             return Frame(t_s=float(t), image=image, sequence=int(seq), source="stream")
 
     async def close(self) -> None:
