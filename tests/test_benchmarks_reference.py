@@ -216,3 +216,19 @@ def test_a_mapper_run_on_the_loop_equations_makes_the_batched_decisions():
 
     assert mapper_module.ekf_update is update.ekf_update
     assert looped.model is inverse_depth
+
+
+def test_daemon_headline_is_the_median_of_the_runs_p99s():
+    """benchmarks/run.py: repeated daemon runs give the median of each p99 (a failed run is left out),
+    the details of the run whose frame -> setpoint p99 is the median."""
+    from benchmarks.run import median_run
+
+    runs = [{"frame_to_setpoint_ms": {"p99": 20.0, "p50": 9.0}, "jitter_ms": {"p99": 3.0}},
+            {"frame_to_setpoint_ms": {"p99": 12.0, "p50": 7.0}, "jitter_ms": {"p99": 6.0}},
+            {"error": "no Zenoh session with the daemon"},
+            {"frame_to_setpoint_ms": {"p99": 14.0, "p50": 8.0}, "jitter_ms": {"p99": 2.0}}]
+    m = median_run(runs)
+    assert m["frame_to_setpoint_ms"] == {"p99": 14.0, "p50": 8.0, "p99_of_runs": [12.0, 14.0, 20.0]}
+    assert m["jitter_ms"]["p99"] == 3.0 and m["jitter_ms"]["p99_of_runs"] == [2.0, 3.0, 6.0]
+    assert m["runs_completed"] == 3
+    assert median_run([{"error": "x"}]) == {"error": "x"}
