@@ -55,9 +55,6 @@ SNAPSHOT_NAME = "terrain.snapshot"
 SEVERITY_WARNING, SEVERITY_NOTICE, SEVERITY_INFO = 4, 5, 6
 # Minimum time (companion seconds) between avoidance engaged/released STATUSTEXTs.
 STATUSTEXT_HOLD_S = 5.0
-# The synthetic camera's pose is carried from the last SIM_STATE to the tick over at most this long
-# (SIM_STATE comes at the navigation rate, 50 Hz by default: 20 ms apart).
-TRUTH_EXTRAPOLATION_S = 0.1
 
 
 class _Shutdown(Exception):
@@ -308,17 +305,10 @@ class Daemon:
         return build_camera(self.cfg.camera, self.clock)
 
     def _truth_pose(self):
-        """The simulator's true body pose (SIM_STATE over MAVLink), for the synthetic camera: carried
-        to now (the camera's tick) when the last SIM_STATE is at most ``TRUTH_EXTRAPOLATION_S`` old,
-        as a free-running camera exposes at its tick (``TruthPose.at``); older, as it came (the
-        camera then finds it stale and, past its age limit, fails)."""
+        """The simulator's true body pose (SIM_STATE over MAVLink), for the synthetic camera."""
         truth = self.link.truth_pose()
         if truth is None:
             return None
-        now = self.clock.now()
-        if 0.0 <= now - truth.t_s <= TRUTH_EXTRAPOLATION_S:
-            p, q = truth.at(now)
-            return now, p, q
         return truth.t_s, truth.position_ned_m, truth.quaternion_wxyz
 
     async def _camera_task(self) -> None:

@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import NavConfig
-from companion.geometry import matrix_to_quat, quat_to_matrix, so3_exp
+from companion.geometry import quat_to_matrix
 from companion.messages import NavState
 
 # --------------------------------------------------------------------------------------------
@@ -278,8 +278,7 @@ class TruthPose:
     """Simulator truth (SIM_STATE) in the autopilot's local NED frame.
 
     t_s: companion time of arrival (SIM_STATE carries no timestamp).
-    position_ned_m, velocity_ned_mps: (3,); quaternion_wxyz: (4,) body->NED;
-    angular_velocity_body_rps: (3,) body rates (SIM_STATE xgyro, ygyro, zgyro).
+    position_ned_m, velocity_ned_mps: (3,); quaternion_wxyz: (4,) body->NED.
     """
 
     t_s: float
@@ -287,18 +286,6 @@ class TruthPose:
     velocity_ned_mps: np.ndarray
     quaternion_wxyz: np.ndarray
     origin_source: str
-    angular_velocity_body_rps: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-    def at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """The pose carried to ``t_s`` at constant velocity and body rates:
-        ``p + v dt`` and ``R Exp(w dt)`` (body rates act on the right), as (position (3,),
-        quaternion wxyz (4,)). A free-running camera exposes at its own tick, not when the last
-        SIM_STATE arrived; over the 20 ms between two SIM_STATEs at 50 Hz the error is
-        ``a dt^2 / 2``: under a millimetre and a hundredth of a degree in this flight."""
-        dt = float(t_s) - self.t_s
-        p = self.position_ned_m + self.velocity_ned_mps * dt
-        R = quat_to_matrix(self.quaternion_wxyz) @ so3_exp(self.angular_velocity_body_rps * dt)
-        return p, matrix_to_quat(R)
 
 
 @dataclass(slots=True)
@@ -750,16 +737,14 @@ class NavAssembler:
             lat, lon = float(_get(msg, "lat")), float(_get(msg, "lon"))
         alt = float(_get(msg, "alt"))
         v = _floats(msg, "vn", "ve", "vd")
-        w = np.array([float(_get(msg, n, 0.0) or 0.0) for n in ("xgyro", "ygyro", "zgyro")])  # optional: no rates, no rotation
-        if not (math.isfinite(lat) and math.isfinite(lon) and math.isfinite(alt) and np.all(np.isfinite(v))
-                and np.all(np.isfinite(w))):
+        if not (math.isfinite(lat) and math.isfinite(lon) and math.isfinite(alt) and np.all(np.isfinite(v))):
             self._reject(kind, "non-finite position", f"{lat} {lon} {alt}")
             return None
         if self.origin is None:
             self._truth = None
             return None
         p = geodetic_to_ned(lat, lon, alt, self.origin)
-        self._truth = TruthPose(t_rx, p, v, q, self.origin.source, w)
+        self._truth = TruthPose(t_rx, p, v, q, self.origin.source)
         return None
 
     def truth_pose(self) -> TruthPose | None:

@@ -136,25 +136,3 @@ def test_every_map_update_gets_one_frame_to_setpoint_sample_at_the_first_setpoin
     asyncio.run(main())
     assert d.control_ticks > 0
     assert d.control_jitter_ms.summary()["n"] == d.control_ticks
-
-
-def test_synthetic_camera_pose_is_carried_to_the_tick_within_the_limit():
-    """The daemon hands the synthetic camera the SIM_STATE truth carried to now (the tick), so the
-    frame's stamp is its exposure, not the last SIM_STATE's arrival; a truth older than
-    TRUTH_EXTRAPOLATION_S is handed over as it came (the camera sees it stale)."""
-    from types import SimpleNamespace
-
-    from companion.daemon import TRUTH_EXTRAPOLATION_S, Daemon
-    from companion.navigation import TruthPose
-
-    truth = TruthPose(10.0, np.array([1.0, 2.0, -15.0]), np.array([6.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0, 0.0]),
-                      "GPS_GLOBAL_ORIGIN", np.array([0.0, 0.0, 0.2]))
-    now = [10.015]
-    fake = SimpleNamespace(link=SimpleNamespace(truth_pose=lambda: truth), clock=SimpleNamespace(now=lambda: now[0]))
-    t, p, q = Daemon._truth_pose(fake)
-    assert t == 10.015
-    np.testing.assert_allclose(p, [1.0 + 6.0 * 0.015, 2.0, -15.0])
-    np.testing.assert_allclose(q, truth.at(10.015)[1])
-    now[0] = 10.0 + TRUTH_EXTRAPOLATION_S + 0.05
-    t, p, q = Daemon._truth_pose(fake)
-    assert t == 10.0 and np.array_equal(p, truth.position_ned_m)

@@ -409,45 +409,6 @@ def test_truth_pose_from_sim_state_and_origin_or_home():
     assert b.truth_pose().origin_source == "HOME_POSITION"
 
 
-@settings(max_examples=40, deadline=None)
-@given(st.floats(-0.05, 0.05), st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3),
-       st.lists(st.floats(-10.0, 10.0), min_size=3, max_size=3))
-def test_truth_pose_carried_to_a_later_time_follows_constant_rates(dt, w, v):
-    """``TruthPose.at``: constant velocity and body rates give exactly p + v dt and R Exp(w dt); half
-    a step twice is one whole step (a constant-rate rotation composes)."""
-    from companion.geometry import so3_exp
-    from companion.navigation import TruthPose
-
-    q0 = euler_to_quat(0.2, -0.1, 1.3)
-    truth = TruthPose(5.0, np.array([10.0, -2.0, -15.0]), np.array(v), q0, "GPS_GLOBAL_ORIGIN", np.array(w))
-    p, q = truth.at(5.0 + dt)
-    np.testing.assert_allclose(p, truth.position_ned_m + np.array(v) * dt, atol=1e-12)
-    np.testing.assert_allclose(quat_to_matrix(q), quat_to_matrix(q0) @ so3_exp(np.array(w) * dt), atol=1e-12)
-    p_half, q_half = truth.at(5.0 + dt / 2)
-    half = TruthPose(5.0 + dt / 2, p_half, np.array(v), q_half, "GPS_GLOBAL_ORIGIN", np.array(w))
-    np.testing.assert_allclose(half.at(5.0 + dt)[0], p, atol=1e-12)
-    np.testing.assert_allclose(quat_to_matrix(half.at(5.0 + dt)[1]), quat_to_matrix(q), atol=1e-9)
-    p0, q_same = truth.at(5.0)
-    np.testing.assert_allclose(p0, truth.position_ned_m)
-    np.testing.assert_allclose(quat_to_matrix(q_same), quat_to_matrix(q0), atol=1e-12)
-
-
-def test_sim_state_body_rates_reach_the_truth_pose():
-    q = euler_to_quat(0.0, 0.0, 0.0)
-    a = NavAssembler(CFG)
-    a.update(msg("GPS_GLOBAL_ORIGIN", latitude=int(47.0 * 1e7), longitude=int(8.0 * 1e7), altitude=400_000), 1.0)
-    a.update(msg("SIM_STATE", q1=q[0], q2=q[1], q3=q[2], q4=q[3], lat=47.0, lon=8.0, alt=400.0, vn=6.0, ve=0.0,
-                 vd=0.0, xgyro=0.0, ygyro=0.0, zgyro=0.5, lat_int=470000000, lon_int=80000000), 2.0)
-    truth = a.truth_pose()
-    np.testing.assert_allclose(truth.angular_velocity_body_rps, [0.0, 0.0, 0.5])
-    p, q2 = truth.at(2.02)
-    np.testing.assert_allclose(p[:2], [6.0 * 0.02, 0.0], atol=0.02)  # plus degE7 rounding
-    assert math.isclose(math.atan2(quat_to_matrix(q2)[1, 0], quat_to_matrix(q2)[0, 0]), 0.01, abs_tol=1e-12)
-    a.update(msg("SIM_STATE", q1=q[0], q2=q[1], q3=q[2], q4=q[3], lat=47.0, lon=8.0, alt=400.0, vn=6.0, ve=0.0,
-                 vd=0.0, xgyro=float("nan"), ygyro=0.0, zgyro=0.5, lat_int=470000000, lon_int=80000000), 3.0)
-    assert a.truth_pose().t_s == 2.0  # a non-finite rate rejects the message: the last good truth stays
-
-
 def test_pymavlink_messages_are_accepted_as_well_as_dicts():
     from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
