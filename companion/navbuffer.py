@@ -16,12 +16,14 @@ thread, so every method takes a lock (held for microseconds).
 
 from __future__ import annotations
 
+import math
 import bisect
 import threading
 from dataclasses import dataclass
 
 import numpy as np
 
+from companion.geometry import matrix_to_quat, quat_to_matrix, so3_exp
 from companion.messages import NavState
 
 
@@ -215,6 +217,16 @@ def interpolate(a: NavState, b: NavState, t: float) -> NavState:
     )
 
 
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (3,) of a rotation matrix whose angle is below pi (the inverse of so3_exp)."""
+    c = min(1.0, max(-1.0, (float(np.trace(R)) - 1.0) / 2.0))
+    angle = math.acos(c)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if angle < 1e-6:
+        return 0.5 * w  # sin(angle) ~ angle
+    return w * (angle / (2.0 * math.sin(angle)))
+
+
 def extrapolate(a: NavState, prev: NavState | None, t: float) -> NavState:
     """State at ``t`` after the newest state ``a``: position carried at its velocity, attitude at
     the rotation rate between ``prev`` (an older state, or None: attitude held) and ``a``, i.e. the
@@ -225,7 +237,10 @@ def extrapolate(a: NavState, prev: NavState | None, t: float) -> NavState:
     dt = t - a.t_s
     q = a.quaternion_wxyz
     if prev is not None and a.t_s > prev.t_s:
-        q = quat_slerp(prev.quaternion_wxyz, a.quaternion_wxyz, (t - prev.t_s) / (a.t_s - prev.t_s))
+        # R(t) = R_a Exp(s Log(R_prev^T R_a)), s = dt / (t_a - t_prev): the same body rotation per second
+        R_a = quat_to_matrix(a.quaternion_wxyz)
+        step = quat_to_matrix(prev.quaternion_wxyz).T @ R_a
+        q = matrix_to_quat(R_a @ so3_exp(so3_log(step) * (dt / (a.t_s - prev.t_s))))
     return NavState(
         t_s=float(t),
         position_ned_m=a.position_ned_m + dt * a.velocity_ned_mps,
