@@ -299,7 +299,7 @@ class Daemon:
         if self.cfg.camera.source == "stream":
             from drivers.cameras.stream import StreamCamera
 
-            return StreamCamera(self.cfg.camera, self.clock, self.link.timesync.to_companion)
+            return StreamCamera(self.cfg.camera, self.link.timesync.to_companion)
         from drivers.cameras.factory import build_camera
 
         return build_camera(self.cfg.camera, self.clock)

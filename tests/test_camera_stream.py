@@ -12,7 +12,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.clock import Clock
 from companion.config import CameraConfig
 from drivers.cameras.base import CameraError
 from drivers.cameras.stream import HEADER, FrameStreamError, StreamCamera, decode_header, encode_frame, parse_address
@@ -77,7 +76,7 @@ def test_the_reader_maps_times_skips_unsynced_frames_and_survives_a_bad_server()
         server = await asyncio.start_server(serve, "127.0.0.1", 0)
         port = server.sockets[0].getsockname()[1]
         # autopilot time -> companion time: not synced before 1.5 s, then an offset of +100 s
-        cam = StreamCamera(_config(port), Clock(1.0), lambda t: None if t < 1.5 else t + 100.0)
+        cam = StreamCamera(_config(port), lambda t: None if t < 1.5 else t + 100.0)
         got = [await asyncio.wait_for(cam.read(), 5) for _ in range(2)]
         errors = []
         for _ in range(3):
@@ -102,7 +101,7 @@ def test_the_reader_maps_times_skips_unsynced_frames_and_survives_a_bad_server()
 def test_an_absent_server_is_a_camera_error_not_a_hang():
     from tests.processes import free_port
 
-    cam = StreamCamera(_config(free_port()), Clock(1.0), lambda t: t, connect_timeout_s=1.0)
+    cam = StreamCamera(_config(free_port()), lambda t: t, connect_timeout_s=1.0)
     with pytest.raises(CameraError, match="cannot connect"):
         asyncio.run(asyncio.wait_for(cam.read(), 5))
 
@@ -120,7 +119,7 @@ def test_the_simulator_streams_frames_at_the_camera_rate_on_its_boot_clock():
         async def read_frames(n):
             # blank check off: on the ground the camera sees a featureless patch of ground
             cam = StreamCamera(CameraConfig(source="stream", stream_address=f"127.0.0.1:{port}", rate_hz=10.0,
-                                            blank_std_max=0.0), Clock(1.0), lambda t: t)
+                                            blank_std_max=0.0), lambda t: t)
             frames = [await asyncio.wait_for(cam.read(), 10) for _ in range(n)]
             await cam.close()
             return frames
@@ -152,7 +151,7 @@ def test_the_camera_server_renders_the_pose_of_the_exposure():
         await server.start()
         port = int(server.describe().rsplit(":", 1)[1])
         cam = StreamCamera(CameraConfig(source="stream", stream_address=f"127.0.0.1:{port}", rate_hz=10.0),
-                           Clock(1.0), lambda t: t)
+                           lambda t: t)
         reading = asyncio.create_task(asyncio.wait_for(cam.read(), 10))
         for _ in range(100):  # until the client is connected (ticks without a client are not rendered)
             await asyncio.sleep(0.01)

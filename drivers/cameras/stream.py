@@ -21,7 +21,6 @@ from collections.abc import Callable
 
 import numpy as np
 
-from companion.clock import Clock
 from companion.config import CameraConfig
 from companion.messages import Frame
 from drivers.cameras.base import CameraError, CameraSource
@@ -93,10 +92,9 @@ class StreamCamera(CameraSource):
 
     name = "stream"
 
-    def __init__(self, config: CameraConfig, clock: Clock, time_map: TimeMap, connect_timeout_s: float = 2.0):
+    def __init__(self, config: CameraConfig, time_map: TimeMap, connect_timeout_s: float = 2.0):
         self.host, self.port = parse_address(config.stream_address)
         self.name = f"stream:{self.host}:{self.port}"
-        self._clock = clock
         self._time_map = time_map
         self.stats = CameraStats()
         self._checker = FrameChecker(config.width, config.height, self.stats, name=self.name,
