@@ -520,12 +520,13 @@ def run_metrics(rec: RunRecord, world, obstacle, clearance_m: float) -> dict[str
     det_h = np.array([d[1] for d in rec.detection], float)
     detected_t = report.first_detection_time(det_t, det_h, DETECTION_FRACTION * obstacle.textured_height_m)
     needed_s = warning_needed_s(world, obstacle)
+    ground = report.ground_around(obstacle.footprint_ne_m, world.terrain_height)
     laps = []
     starts = [0] + rec.lap_ends[:-1]
     for k, (s, e) in enumerate(zip(starts, rec.lap_ends)):
         sl = slice(s, e + 1)
         crossing = report.min_clearance_over_footprint(t[sl], ne[sl], alt[sl], obstacle.footprint_ne_m, world.terrain_height)
-        mapped = report.mapped_height_over_footprint(rec.lap_maps[k], obstacle.footprint_ne_m)
+        mapped = report.mapped_height_over_footprint(rec.lap_maps[k], obstacle.footprint_ne_m, ground_m=ground)
         err = report.map_error(rec.lap_maps[k], world.terrain_height)
         agl = alt[sl] - world.terrain_height(ne[sl, 0], ne[sl, 1])
         laps.append({
@@ -640,6 +641,7 @@ def comparison_figure(records: dict[str, RunRecord], world, obstacle, path: Path
     import cv2
 
     n_laps = max((len(r.lap_ends) for r in records.values()), default=0)
+    ground = report.ground_around(obstacle.footprint_ne_m, world.terrain_height)
     groups = [f"lap {k + 1}" for k in range(max(1, n_laps))]
     heights, clearances = {}, {}
     for param, rec in records.items():
@@ -647,7 +649,7 @@ def comparison_figure(records: dict[str, RunRecord], world, obstacle, path: Path
         starts = [0] + rec.lap_ends[:-1]
         h, c = [], []
         for k, (s, e) in enumerate(zip(starts, rec.lap_ends)):
-            h.append(report.mapped_height_over_footprint(rec.lap_maps[k], obstacle.footprint_ne_m).height_m)
+            h.append(report.mapped_height_over_footprint(rec.lap_maps[k], obstacle.footprint_ne_m, ground_m=ground).height_m)
             c.append(report.min_clearance_over_footprint(t[s:e + 1], ne[s:e + 1], alt[s:e + 1], obstacle.footprint_ne_m,
                                                          world.terrain_height).min_clearance_m)
         heights[param.replace("_", " ")] = h

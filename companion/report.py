@@ -17,7 +17,8 @@ What is measured (docs/demo.md):
   while the vehicle is over the obstacle's footprint (the issue's ``min_clearance_m``);
 * mapped obstacle height: :func:`mapped_height_over_footprint`, a high quantile (95th
   percentile) of the mapped heights of the footprint's cells that hold at least two points, so
-  that one wild cell does not make the building taller; the maximum is reported beside it;
+  that one wild cell does not make the building taller; the maximum is reported beside it. A
+  lap whose map holds no such cell shows the obstacle at the ground (:func:`ground_around`);
 * map error: :func:`map_error`, RMSE (and robust companions) of every observed cell against the
   true terrain at the cell centre.
 """
@@ -306,18 +307,34 @@ def footprint_cells(raster: MapRaster, polygon: np.ndarray, margin_m: float) -> 
 
 
 def mapped_height_over_footprint(raster: MapRaster, polygon: np.ndarray, min_count: int = 2,
-                                 quantile: float = 0.95, margin_m: float | None = None) -> MappedHeight:
+                                 quantile: float = 0.95, margin_m: float | None = None,
+                                 ground_m: float = math.nan) -> MappedHeight:
     """The obstacle's height as mapped: a high quantile over its footprint's supported cells.
 
-    margin_m: footprint growth (default one cell, see :func:`footprint_cells`)."""
+    margin_m: footprint growth (default one cell, see :func:`footprint_cells`). ground_m: the
+    altitude reported when no cell of the footprint is supported, the map showing no obstacle
+    there (the paper's fig. 2 draws such a lap at the ground; default NaN, "unknown");
+    ``cells`` is then 0."""
     if not 0.0 <= quantile <= 1.0:
         raise ValueError(f"quantile must be within [0, 1], got {quantile}")
     mask = footprint_cells(raster, polygon, raster.cell_m if margin_m is None else margin_m)
     supported = mask & (raster.count >= min_count) & np.isfinite(raster.height)
     h = raster.height[supported]
     if h.size == 0:
-        return MappedHeight(math.nan, math.nan, 0, int(mask.sum()))
+        return MappedHeight(ground_m, ground_m, 0, int(mask.sum()))
     return MappedHeight(float(np.quantile(h, quantile)), float(h.max()), int(h.size), int(mask.sum()))
+
+
+def ground_around(polygon: np.ndarray, terrain_fn: TerrainFn, distance_m: float = 3.0) -> float:
+    """The obstacle's base altitude (m): the median true terrain on its footprint's bounding box
+    grown by ``distance_m``, sampled every metre along the box's edges."""
+    lo = np.asarray(polygon, float).min(axis=0) - distance_m
+    hi = np.asarray(polygon, float).max(axis=0) + distance_m
+    n = np.linspace(lo[0], hi[0], max(2, int(hi[0] - lo[0]) + 1))
+    e = np.linspace(lo[1], hi[1], max(2, int(hi[1] - lo[1]) + 1))
+    north = np.concatenate([n, n, np.full_like(e, lo[0]), np.full_like(e, hi[0])])
+    east = np.concatenate([np.full_like(n, lo[1]), np.full_like(n, hi[1]), e, e])
+    return float(np.median(terrain_fn(north, east)))
 
 
 def height_over_flat_ground(ne: np.ndarray, alt_m: np.ndarray, terrain_fn: TerrainFn,

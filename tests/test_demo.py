@@ -174,6 +174,9 @@ def test_mapped_height_is_robust_to_a_few_wild_cells_and_ignores_single_points()
     assert m.cells == m.footprint_cells == 22 * 22  # footprint grown by one cell
     single = report.mapped_height_over_footprint(synthetic_building_map(9.0, rng, count=1), SQUARE)
     assert math.isnan(single.height_m) and single.cells == 0
+    # with the ground given, a map holding nothing of the obstacle shows it at the ground
+    at_ground = report.mapped_height_over_footprint(synthetic_building_map(9.0, rng, count=1), SQUARE, ground_m=0.5)
+    assert at_ground.height_m == at_ground.max_m == 0.5 and at_ground.cells == 0
     with pytest.raises(ValueError, match="quantile"):
         report.mapped_height_over_footprint(synthetic_building_map(9.0, rng), SQUARE, quantile=1.5)
 
@@ -184,6 +187,16 @@ def test_a_wall_mapped_just_outside_the_footprint_still_counts():
     r = report.MapRaster(h, np.where(np.isfinite(h), 4, 0), 80.0, -20.0, 1.0)
     assert report.mapped_height_over_footprint(r, SQUARE).height_m == pytest.approx(9.0)
     assert math.isnan(report.mapped_height_over_footprint(r, SQUARE, margin_m=0.0).height_m)
+
+
+def test_ground_around_is_the_terrain_beside_the_footprint_not_its_top():
+    # a 12 m box on ground tilted 1 m per 20 m to the north: the median of the ring is the box's centre line
+    def terrain(n, e):
+        n, e = np.broadcast_arrays(np.asarray(n, float), np.asarray(e, float))
+        inside = (n > 90) & (n < 110) & (e > -10) & (e < 10)
+        return np.where(inside, 12.0, (n - 100.0) / 20.0)
+    assert report.ground_around(SQUARE, terrain) == pytest.approx(0.0, abs=0.05)
+    assert report.ground_around(SQUARE, lambda n, e: np.full(np.shape(n), 3.0)) == 3.0
 
 
 def test_map_error_is_the_rmse_of_observed_cells_against_the_truth():
