@@ -212,7 +212,7 @@ DETECTOR_SECTIONS = [
 ]
 MAPPER_FUNCTIONS = [
     ("check_nav", "_checked_pose_covariance"),
-    ("appearance: patch descriptors", "patch_descriptors"),
+    ("appearance: patch descriptors", "FramePatches"),
     ("appearance: correlation of gated pairs", "pair_correlation"),
     ("navigation drift (process noise)", "navigation_drift"),
     ("match: innovation covariance S (eq. 10)", "innovation_covariance"),

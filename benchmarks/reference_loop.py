@@ -140,8 +140,9 @@ def ekf_update_one(y, P_y, innovation, C_x, C_y, P_x, R_img) -> tuple[np.ndarray
 # ------------------------------------------------------------------------------------------------
 
 
-def measurement_model(y, R_ref, pose, camera):
-    """Loop of :func:`measurement_model_one`: (N, 6), (N, 3, 3) -> pixels (N, 2), ``h^c`` (N, 3)."""
+def measurement_model(y, R_ref, pose, camera, directions=None):
+    """Loop of :func:`measurement_model_one`: (N, 6), (N, 3, 3) -> pixels (N, 2), ``h^c`` (N, 3).
+    ``directions`` (the batched step's shared terms) is ignored: each feature computes its own."""
     n = len(y)
     uv, h = np.empty((n, 2)), np.empty((n, 3))
     for j in range(n):
@@ -149,7 +150,7 @@ def measurement_model(y, R_ref, pose, camera):
     return uv, h
 
 
-def measurement_jacobian(y, R_ref, pose, camera, h_c=None):
+def measurement_jacobian(y, R_ref, pose, camera, h_c=None, directions=None):
     """Loop of :func:`measurement_jacobian_one` -> ``C_x`` (N, 2, 6), ``C_y`` (N, 2, 6)."""
     n = len(y)
     C_x, C_y = np.empty((n, 2, 6)), np.empty((n, 2, 6))
@@ -216,7 +217,7 @@ def near_stored_features(Z, z, g, exclusion_chi2, exclusion_px):
     return near
 
 
-def candidate_pairs(z, g, S, chi2, px):
+def candidate_pairs(z, g, S, chi2, px, S_inverse=None):
     """Pairs (point j, measurement i) with ``Z_ij < chi2`` or ``|z_i - g_j| < px``: each feature's
     whole row of distances (:func:`mahalanobis_row_one`), then the pairs that pass. Returns an object
     with ``point``, ``meas``, ``Z``, ``d2`` (P,), the fields of the batched ``CandidatePairs``."""
@@ -266,8 +267,9 @@ def near_stored_pairs(pairs, n_meas, exclusion_chi2, exclusion_px):
     return near
 
 
-def ekf_update(y, P_y, innovation, C_x, C_y, P_x, R_img):
-    """Loop of :func:`ekf_update_one` -> y (N, D), P (N, D, D), ok (N,)."""
+def ekf_update(y, P_y, innovation, C_x, C_y, P_x, R_img, S_inverse=None):
+    """Loop of :func:`ekf_update_one` -> y (N, D), P (N, D, D), ok (N,). ``S_inverse`` (the batched
+    code's shared inverses) is ignored: each feature computes its own."""
     y = np.asarray(y, dtype=float)
     P_y = np.asarray(P_y, dtype=float)
     n = len(y)

@@ -245,6 +245,152 @@ def test_detector_output_does_not_depend_on_its_first_batch():
     assert adaptive._first_batch < 10**6
 
 
+def test_detector_output_does_not_depend_on_its_level():
+    """Candidates are looked for first above a level the last frame set; whatever that level (none,
+    one leaving too few candidates for the first batch, one leaving enough for the first batch but
+    too few for the selection, so that the rest are taken mid-way), the result is the same."""
+    rng = np.random.default_rng(5)
+    frames = [textured(rng, 240, 320, 4) for _ in range(4)]
+    cfg = MapperConfig(max_detections=60, per_bin=3)
+    adaptive = HarrisDetector(cfg, 320, 240, 8)
+    switched = 0
+    for img in frames:
+        uv, score = adaptive(img)
+        full = HarrisDetector(cfg, 320, 240, 8)
+        _, all_scores = full.candidate_maxima(full.harris_response(img).copy(), full.valid_region(img))
+        ranked = np.sort(all_scores)[::-1]
+        for level in (0.0, float(ranked[10]), float(ranked[100]), 1e30):
+            for first in (8, 64, 10**6):
+                d = HarrisDetector(cfg, 320, 240, 8)
+                d._level, d._first_batch = level, first
+                uv_l, score_l = d(img)
+                np.testing.assert_array_equal(uv_l, uv)
+                np.testing.assert_array_equal(score_l, score)
+                if level == float(ranked[10]) and first == 8:  # 10 candidates above: the rest taken mid-way
+                    assert d.n_candidates == len(all_scores)
+                    switched += 1
+        assert len(uv) == 60
+    assert switched == len(frames)
+    assert adaptive._level > 0.0
+
+
+def test_frame_patches_are_the_rows_of_all_patches():
+    """Patches cut on demand (a few rows at a time, or a subset of the measurements) equal the
+    rows of the patches of every measurement, to the bit."""
+    rng = np.random.default_rng(6)
+    gray = textured(rng, 60, 80, 4)
+    uv = np.column_stack([rng.uniform(-2, 81, 40), rng.uniform(-2, 61, 40)])
+    every = appearance.patch_descriptors(gray, uv, 9)
+    patches = appearance.FramePatches(gray, uv, 9)
+    for index in (np.arange(40), np.array([3, 3, 17, 0]), np.zeros(0, np.intp), rng.permutation(40)[:7]):
+        np.testing.assert_array_equal(patches.rows(index), every[index])
+    part = np.array([1, 5, 9, 30])
+    np.testing.assert_array_equal(patches.subset(part).rows(np.array([2, 0])), every[[9, 1]])
+    given = appearance.GivenPatches(every)
+    np.testing.assert_array_equal(given.subset(part).rows(np.array([3])), every[[30]])
+    assert len(patches) == len(given) == 40
+
+
+def random_features(rng, n):
+    """Inverse-depth states (n, 6) and reference rotations (n, 3, 3) seen by a camera looking down."""
+    from companion.geometry import so3_exp
+    from companion.mapper import inverse_depth
+
+    y = np.column_stack([rng.normal(0.0, 5.0, (n, 3)), rng.uniform(-3.2, 3.2, n), rng.uniform(-1.2, 1.2, n),
+                         rng.uniform(0.01, 0.2, n)])
+    R_nc = np.array([so3_exp(rng.normal(0.0, 0.3, 3)) for _ in range(n)]).reshape(n, 3, 3) @ np.array(
+        [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    return y, inverse_depth.reference_rotation(R_nc)
+
+
+@settings(max_examples=30, deadline=None)
+@given(SEEDS, st.integers(0, 40))
+def test_shared_ray_directions_equal_each_function_computing_its_own(seed, n):
+    """The step computes eq. 3's direction terms once (inverse_depth.ray_directions); the drift
+    Jacobian, the prediction and eq. 5 given them equal the same functions computing their own,
+    to the bit, also on a subset (the visible features)."""
+    from companion.geometry import camera_from_config
+    from companion.config import CompanionConfig
+    from companion.mapper import inverse_depth as idp
+    from companion.mapper.projection import CameraPose
+
+    rng = np.random.default_rng(seed)
+    y, R_ref = random_features(rng, n)
+    camera, mount = camera_from_config(CompanionConfig().camera)
+    pose = CameraPose.from_body(rng.normal(0.0, 3.0, 3), quat_to_matrix(rng.normal(size=4) + [3, 0, 0, 0]), mount)
+    d = idp.ray_directions(y, R_ref)
+    np.testing.assert_array_equal(d.m_world, idp.world_direction(y, R_ref))
+    dm_dpsi, dm_dtheta = idp.direction_derivatives(y[:, idp.PSI], y[:, idp.THETA])
+    np.testing.assert_array_equal(d.dm_dpsi, dm_dpsi)
+    np.testing.assert_array_equal(d.dm_dtheta, dm_dtheta)
+    np.testing.assert_array_equal(idp.navigation_frame_jacobian(y, R_ref, pose.p, d),
+                                  idp.navigation_frame_jacobian(y, R_ref, pose.p))
+    uv, h_c = idp.measurement_model(y, R_ref, pose, camera, d)
+    uv0, h_c0 = idp.measurement_model(y, R_ref, pose, camera)
+    np.testing.assert_array_equal(uv, uv0)
+    np.testing.assert_array_equal(h_c, h_c0)
+    front = np.flatnonzero(h_c[:, 0] > 0)
+    C_x, C_y = idp.measurement_jacobian(y[front], R_ref[front], pose, camera, h_c[front], d.take(front))
+    C_x0, C_y0 = idp.measurement_jacobian(y[front], R_ref[front], pose, camera)
+    np.testing.assert_array_equal(C_x, C_x0)
+    np.testing.assert_array_equal(C_y, C_y0)
+
+
+class LooksNonZero(np.ndarray):
+    """An array that claims to have a non-zero entry: a zero P_x of this type takes the general
+    path (the navigation terms computed and added) where a plain zero P_x skips them."""
+
+    def any(self, *args, **kwargs):
+        return True
+
+
+def spd(rng, n, dim):
+    A = rng.normal(size=(n, dim, dim))
+    return A @ A.transpose(0, 2, 1) + 0.1 * np.eye(dim)
+
+
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")  # inf * 0 on the general path
+@settings(max_examples=40, deadline=None)
+@given(SEEDS, st.integers(0, 30), st.booleans())
+def test_a_zero_navigation_covariance_is_skipped_exactly(seed, n, nonfinite):
+    """With the correlated navigation model the measurement's P_x is zero; the innovation
+    covariance, the EKF update and the initialisation then skip its terms. The results equal the
+    general path's (the zero terms computed and added), also when C_x is not finite (inf * 0)."""
+    from companion.config import CompanionConfig
+    from companion.geometry import camera_from_config
+    from companion.mapper import inverse_depth as idp, update
+    from companion.mapper.projection import CameraPose
+
+    rng = np.random.default_rng(seed)
+    C_x, C_y = rng.normal(size=(n, 2, 6)) * 50, rng.normal(size=(n, 2, 6)) * 50
+    if nonfinite and n:
+        C_x[rng.integers(0, n), 1, 3] = np.inf
+    P_y, R_img = spd(rng, n, 6), np.diag([0.7, 0.7])
+    zero, general = np.zeros((6, 6)), np.zeros((6, 6)).view(LooksNonZero)
+    assert not matching.navigation_term_vanishes(general, C_x)
+    np.testing.assert_array_equal(matching.innovation_covariance(C_x, C_y, zero, P_y, R_img),
+                                  np.asarray(matching.innovation_covariance(C_x, C_y, general, P_y, R_img)))
+    y, innovation = rng.normal(size=(n, 6)), rng.normal(size=(n, 2))
+    want = update.ekf_update(y, P_y, innovation, C_x, C_y, general, R_img)
+    for got, w in zip(update.ekf_update(y, P_y, innovation, C_x, C_y, zero, R_img), want):
+        np.testing.assert_array_equal(got, np.asarray(w))
+    if matching.navigation_term_vanishes(zero, C_x):
+        # the update's S is then the gate's: its inverse, taken from the gates' of all features
+        # (a subset of them here, as the matched ones are), gives the same update
+        S_inv, S_ok = matching.inverse_2x2(matching.innovation_covariance(C_x, C_y, zero, P_y, R_img))
+        some = rng.permutation(n)[: n // 2]
+        for got, w in zip(update.ekf_update(y[some], P_y[some], innovation[some], C_x[some], C_y[some], zero, R_img,
+                                            (S_inv[some], S_ok[some])), want):
+            np.testing.assert_array_equal(got, np.asarray(w)[some])
+    camera, mount = camera_from_config(CompanionConfig().camera)
+    pose = CameraPose.from_body(rng.normal(0.0, 3.0, 3), quat_to_matrix(rng.normal(size=4) + [3, 0, 0, 0]), mount)
+    uv = np.column_stack([rng.uniform(0, 640, n), rng.uniform(0, 480, n)])
+    ranges = rng.uniform(1.0, 100.0, n)
+    for got, want in zip(idp.initialise_features(uv, ranges, pose, camera, R_img, 0.5, zero),
+                         idp.initialise_features(uv, ranges, pose, camera, R_img, 0.5, general)):
+        np.testing.assert_array_equal(got, np.asarray(want))
+
+
 def clipped_patches(gray, uv, size):
     """patch_descriptors as first written: a clipped gather for every patch."""
     r = size // 2

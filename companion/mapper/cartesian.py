@@ -24,6 +24,7 @@ __all__ = [
     "STATE_DIM",
     "reference_rotation",
     "camera_vector",
+    "ray_directions",
     "measurement_model",
     "measurement_jacobian",
     "initialise_features",
@@ -35,13 +36,18 @@ __all__ = [
 ]
 
 
-def camera_vector(y: np.ndarray, R_ref: np.ndarray, pose: CameraPose) -> np.ndarray:
+def ray_directions(y: np.ndarray, R_ref: np.ndarray) -> None:
+    """No direction terms to share (a Cartesian point has no angles): ``None``."""
+    return None
+
+
+def camera_vector(y: np.ndarray, R_ref: np.ndarray, pose: CameraPose, directions: None = None) -> np.ndarray:
     """``h^c = R_nc^T (X - p_c)`` (N, 3)."""
     return (np.asarray(y, dtype=float) - pose.p_c) @ pose.R_nc
 
 
 def measurement_model(
-    y: np.ndarray, R_ref: np.ndarray, pose: CameraPose, camera: PinholeCamera
+    y: np.ndarray, R_ref: np.ndarray, pose: CameraPose, camera: PinholeCamera, directions: None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Predicted ideal pixels (N, 2) (NaN behind the camera) and ``h^c`` (N, 3)."""
     h_c = camera_vector(y, R_ref, pose)
@@ -49,7 +55,12 @@ def measurement_model(
 
 
 def measurement_jacobian(
-    y: np.ndarray, R_ref: np.ndarray, pose: CameraPose, camera: PinholeCamera, h_c: np.ndarray | None = None
+    y: np.ndarray,
+    R_ref: np.ndarray,
+    pose: CameraPose,
+    camera: PinholeCamera,
+    h_c: np.ndarray | None = None,
+    directions: None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``C_x`` (N, 2, 6) and ``C_y`` (N, 2, 3): ``dh/dX = R_nc^T``, ``dh/dp = -R_nc^T``,
     ``dh/d(dtheta) = R_nc^T [X - p]x``, chained with ``dg/dh``."""
@@ -103,7 +114,7 @@ def initialise_features(
     return X, 0.5 * (P + np.swapaxes(P, 1, 2)), R_ref
 
 
-def navigation_frame_jacobian(y: np.ndarray, R_ref: np.ndarray, p: np.ndarray) -> np.ndarray:
+def navigation_frame_jacobian(y: np.ndarray, R_ref: np.ndarray, p: np.ndarray, directions: None = None) -> np.ndarray:
     """``dX/dx`` (N, 3, 6) of a stored point when the navigation frame moves by ``x = [dp, dtheta]``
     (rigidly about the body origin ``p`` (3,)): ``[I, -[X - p]x]`` (see the inverse-depth version)."""
     y = np.asarray(y, dtype=float)

@@ -17,6 +17,8 @@ Every function is batched over N features; shapes are in the docstrings.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from companion.geometry import PAPER_TO_OPENCV, PinholeCamera, skew
@@ -29,6 +31,7 @@ PSI, THETA, RHO = 3, 4, 5
 # Reference axes (x, y, z) = camera axes (y right, z down, x optical) at initialisation, so that the
 # paper's (psi, theta) = (0, 0) lies on the optical axis: h_ref = CAMERA_TO_REFERENCE @ h_c.
 CAMERA_TO_REFERENCE = PAPER_TO_OPENCV
+_I3 = np.eye(3)
 
 
 def reference_rotation(R_nc: np.ndarray) -> np.ndarray:
@@ -79,11 +82,56 @@ def angle_jacobian(psi: np.ndarray, theta: np.ndarray) -> np.ndarray:
     The ``1 / cos theta`` is the parameterisation's singularity.
     """
     dm_dpsi, dm_dtheta = direction_derivatives(psi, theta)
-    ct = np.cos(theta)
-    A = np.empty((len(psi), 2, 3))
+    return _angle_jacobian(dm_dpsi, dm_dtheta, np.cos(theta))
+
+
+def _angle_jacobian(dm_dpsi: np.ndarray, dm_dtheta: np.ndarray, ct: np.ndarray) -> np.ndarray:
+    """:func:`angle_jacobian` from ``dm/dpsi``, ``dm/dtheta`` (N, 3) and ``cos theta`` (N,)."""
+    A = np.empty((len(ct), 2, 3))
     np.divide(dm_dpsi, (ct * ct)[:, None], out=A[:, 0])
     A[:, 1] = dm_dtheta
     return A
+
+
+class RayDirections(NamedTuple):
+    """The direction terms of eq. 3 for N stored features, computed once per step.
+
+    The drift Jacobian, the prediction (eqs. 3-4) and the measurement Jacobian (eq. 5) all need
+    ``sin`` and ``cos`` of the angles and ``m_world = R_ref m(psi, theta)``; each used to compute
+    them again. Every term is what :func:`direction_vector`, :func:`direction_derivatives` and
+    :func:`world_direction` return for the same state (the same operations, so the same bits).
+
+    cos_theta (N,); m_world (N, 3); dm_dpsi, dm_dtheta (N, 3) in the reference frame.
+    """
+
+    cos_theta: np.ndarray
+    m_world: np.ndarray
+    dm_dpsi: np.ndarray
+    dm_dtheta: np.ndarray
+
+    def take(self, index: np.ndarray) -> "RayDirections":
+        """The terms of the features at ``index`` (k,)."""
+        return RayDirections(self.cos_theta[index], self.m_world[index], self.dm_dpsi[index], self.dm_dtheta[index])
+
+
+def ray_directions(y: np.ndarray, R_ref: np.ndarray) -> RayDirections:
+    """Eq. 3's direction terms of states (N, 6) with rotations (N, 3, 3): four ``sin``/``cos``
+    calls for the step instead of one set per function."""
+    y = np.asarray(y, dtype=float)
+    psi, theta = y[:, PSI], y[:, THETA]
+    st, ct, sp, cp = np.sin(theta), np.cos(theta), np.sin(psi), np.cos(psi)
+    d = np.empty((3,) + np.shape(psi) + (3,))  # m, dm/dpsi, dm/dtheta in one allocation
+    m, dm_dpsi, dm_dtheta = d[0], d[1], d[2]
+    m[..., 0] = st
+    m[..., 1] = ct * sp
+    m[..., 2] = ct * cp
+    dm_dpsi[..., 0] = 0.0
+    dm_dpsi[..., 1] = ct * cp
+    dm_dpsi[..., 2] = -ct * sp
+    dm_dtheta[..., 0] = ct
+    dm_dtheta[..., 1] = -st * sp
+    dm_dtheta[..., 2] = -st * cp
+    return RayDirections(ct, np.einsum("nij,nj->ni", R_ref, m), dm_dpsi, dm_dtheta)
 
 
 def world_direction(y: np.ndarray, R_ref: np.ndarray) -> np.ndarray:
@@ -92,26 +140,33 @@ def world_direction(y: np.ndarray, R_ref: np.ndarray) -> np.ndarray:
     return np.einsum("nij,nj->ni", R_ref, m_ref)
 
 
-def camera_vector(y: np.ndarray, R_ref: np.ndarray, pose: CameraPose) -> np.ndarray:
+def camera_vector(y: np.ndarray, R_ref: np.ndarray, pose: CameraPose, directions: RayDirections | None = None) -> np.ndarray:
     """Eq. 3 with the camera offset: ``h^c = R_nc^T [rho (a - p_c) + m_world]`` -> (N, 3).
 
     ``h^c`` is the ray to the feature scaled by ``rho`` (so it stays finite at ``rho = 0``).
+    ``directions``: :func:`ray_directions` of ``y`` if already computed.
     """
     y = np.asarray(y, dtype=float)
-    w = y[:, RHO, None] * (y[:, ANCHOR] - pose.p_c) + world_direction(y, R_ref)
+    m_w = world_direction(y, R_ref) if directions is None else directions.m_world
+    w = y[:, RHO, None] * (y[:, ANCHOR] - pose.p_c) + m_w
     return w @ pose.R_nc
 
 
 def measurement_model(
-    y: np.ndarray, R_ref: np.ndarray, pose: CameraPose, camera: PinholeCamera
+    y: np.ndarray, R_ref: np.ndarray, pose: CameraPose, camera: PinholeCamera, directions: RayDirections | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Eqs. 3-4: predicted ideal pixels (N, 2) (NaN behind the camera) and ``h^c`` (N, 3)."""
-    h_c = camera_vector(y, R_ref, pose)
+    h_c = camera_vector(y, R_ref, pose, directions)
     return pixel_from_camera_vector(h_c, camera), h_c
 
 
 def measurement_jacobian(
-    y: np.ndarray, R_ref: np.ndarray, pose: CameraPose, camera: PinholeCamera, h_c: np.ndarray | None = None
+    y: np.ndarray,
+    R_ref: np.ndarray,
+    pose: CameraPose,
+    camera: PinholeCamera,
+    h_c: np.ndarray | None = None,
+    directions: RayDirections | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 5: ``C_x = dz/dx`` (N, 2, 6) over ``[p, dtheta]`` and ``C_y = dz/dy`` (N, 2, 6).
 
@@ -120,17 +175,19 @@ def measurement_jacobian(
     ``dh/drho = R_nc^T (a - p_c)``, ``dh/dp = -rho R_nc^T`` and, because ``R_nc`` and the lever arm
     rotate together under ``Exp(dtheta)``, ``dh/d(dtheta) = R_nc^T [rho (a - p) + m_world]x``.
     All are chained with ``dg/dh`` (:func:`pixel_jacobian`). Features with ``h_x <= 0`` must be
-    removed before calling.
+    removed before calling. ``h_c``, ``directions``: :func:`camera_vector` and :func:`ray_directions`
+    of ``y`` if already computed.
     """
     y = np.asarray(y, dtype=float)
     n = len(y)
+    if directions is None:
+        directions = ray_directions(y, R_ref)
     if h_c is None:
-        h_c = camera_vector(y, R_ref, pose)
+        h_c = camera_vector(y, R_ref, pose, directions)
     G = pixel_jacobian(h_c, camera)  # (N, 2, 3)
     RT = pose.R_nc.T
     rho = y[:, RHO]
-    dm_dpsi, dm_dtheta = direction_derivatives(y[:, PSI], y[:, THETA])
-    m_w = world_direction(y, R_ref)
+    dm_dpsi, dm_dtheta, m_w = directions.dm_dpsi, directions.dm_dtheta, directions.m_world
 
     dh_dy = np.empty((n, 3, STATE_DIM))
     dh_dy[:, :, ANCHOR] = rho[:, None, None] * RT
@@ -194,17 +251,22 @@ def initialise_features(
     J_z = np.zeros((n, STATE_DIM, 2))
     J_z[:, PSI:THETA + 1, :] = (A_ref @ pose.R_nc @ dh_dz) / norm[:, None, None]
 
-    J_x = np.zeros((n, STATE_DIM, 6))
-    J_x[:, ANCHOR, 0:3] = np.eye(3)
-    J_x[:, ANCHOR, 3:6] = -skew(pose.p_c - pose.p)  # lever arm R_nb t_bc rotates with the body
-    J_x[:, PSI:THETA + 1, 3:6] = -A_ref @ skew(m_w)
-
-    P = J_z @ R_img @ J_z.transpose(0, 2, 1) + J_x @ P_x @ J_x.transpose(0, 2, 1)
+    P = J_z @ R_img @ J_z.transpose(0, 2, 1)
+    # A zero P_x (the correlated navigation model's: its error is in the features' covariance)
+    # adds nothing, J_x being finite (|theta| <= pi/2 keeps A finite): then J_x is not built.
+    if P_x.any():
+        J_x = np.zeros((n, STATE_DIM, 6))
+        J_x[:, ANCHOR, 0:3] = _I3
+        J_x[:, ANCHOR, 3:6] = -skew(pose.p_c - pose.p)  # lever arm R_nb t_bc rotates with the body
+        J_x[:, PSI:THETA + 1, 3:6] = -A_ref @ skew(m_w)
+        P = P + J_x @ P_x @ J_x.transpose(0, 2, 1)
     P[:, RHO, RHO] += sigma_rho**2
     return y, 0.5 * (P + P.transpose(0, 2, 1)), R_ref
 
 
-def navigation_frame_jacobian(y: np.ndarray, R_ref: np.ndarray, p: np.ndarray) -> np.ndarray:
+def navigation_frame_jacobian(
+    y: np.ndarray, R_ref: np.ndarray, p: np.ndarray, directions: RayDirections | None = None
+) -> np.ndarray:
     """How a stored feature moves when the navigation frame moves: ``dy/dx`` (N, 6, 6).
 
     The features live in the autopilot's estimated frame (docs/mapper.md, "Correlated navigation
@@ -212,14 +274,17 @@ def navigation_frame_jacobian(y: np.ndarray, R_ref: np.ndarray, p: np.ndarray) -
     while the world stays put, every point seen from it moves rigidly about the body origin ``p``
     (3,): the anchor by ``da = dp - [a - p]x dtheta``, the direction by ``m -> Exp(dtheta) m``, so
     ``d(psi, theta) = -A R_ref^T [m]x dtheta``, and ``rho`` (a distance) not at all. The same form as
-    the initialisation's ``J_x`` (eq. 17) with the lever arm ``a - p``.
+    the initialisation's ``J_x`` (eq. 17) with the lever arm ``a - p``. ``directions``:
+    :func:`ray_directions` of ``y`` if already computed.
     """
     y = np.asarray(y, dtype=float)
     n = len(y)
-    m_w = world_direction(y, R_ref)
-    A_ref = angle_jacobian(y[:, PSI], y[:, THETA]) @ R_ref.transpose(0, 2, 1)
+    if directions is None:
+        directions = ray_directions(y, R_ref)
+    m_w = directions.m_world
+    A_ref = _angle_jacobian(directions.dm_dpsi, directions.dm_dtheta, directions.cos_theta) @ R_ref.transpose(0, 2, 1)
     J = np.zeros((n, STATE_DIM, 6))
-    J[:, ANCHOR, 0:3] = np.eye(3)
+    J[:, ANCHOR, 0:3] = _I3
     J[:, ANCHOR, 3:6] = -skew(y[:, ANCHOR] - np.asarray(p, dtype=float))
     J[:, PSI:THETA + 1, 3:6] = -A_ref @ skew(m_w)
     return J
@@ -239,7 +304,7 @@ def point_from_state(y: np.ndarray, R_ref: np.ndarray) -> tuple[np.ndarray, np.n
     dm_dpsi, dm_dtheta = direction_derivatives(y[:, PSI], y[:, THETA])
     X = y[:, ANCHOR] + m_w * inv[:, None]
     J = np.zeros((len(y), 3, STATE_DIM))
-    J[:, :, ANCHOR] = np.eye(3)
+    J[:, :, ANCHOR] = _I3
     J[:, :, PSI] = np.einsum("nij,nj->ni", R_ref, dm_dpsi) * inv[:, None]
     J[:, :, THETA] = np.einsum("nij,nj->ni", R_ref, dm_dtheta) * inv[:, None]
     J[:, :, RHO] = -m_w * (inv * inv)[:, None]

@@ -19,9 +19,18 @@ dense form (tests/test_mapper_fast_paths.py).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+
+
+def navigation_term_vanishes(P_x: np.ndarray, C_x: np.ndarray) -> bool:
+    """Whether ``C_x P_x C_x^T`` is exactly zero, so that adding it changes nothing (but the sign
+    of a zero): ``P_x`` (6, 6) all zero and ``C_x`` (N, 2, 6) finite (``inf * 0`` would be NaN).
+    With the correlated navigation model (docs/mapper.md) the measurement's ``P_x`` is zero every
+    step: the navigation error is already in the features' covariance."""
+    return not P_x.any() and math.isfinite(C_x.sum())
 
 
 def innovation_covariance(
@@ -31,7 +40,10 @@ def innovation_covariance(
 
     C_x (N, 2, 6), C_y (N, 2, D), P_x (6, 6), P_y (N, D, D), R_img (2, 2) -> S (N, 2, 2), symmetric.
     """
-    S = C_x @ P_x @ C_x.transpose(0, 2, 1) + C_y @ P_y @ C_y.transpose(0, 2, 1) + R_img
+    if navigation_term_vanishes(P_x, C_x):
+        S = C_y @ P_y @ C_y.transpose(0, 2, 1) + R_img
+    else:
+        S = C_x @ P_x @ C_x.transpose(0, 2, 1) + C_y @ P_y @ C_y.transpose(0, 2, 1) + R_img
     return 0.5 * (S + S.transpose(0, 2, 1))
 
 
@@ -45,13 +57,17 @@ def inverse_2x2(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ad = a * d
     det = ad - b * b
     ok = np.isfinite(det) & (a > 0) & (det > 1e-12 * np.maximum(ad, 1e-300))
-    inv_det = np.divide(1.0, det, out=np.zeros_like(det), where=ok)
+    all_ok = np.count_nonzero(ok) == len(ok)  # (ok.all() at a third of its cost)
+    # the usual case: every det positive and finite, a plain division (the same values)
+    if all_ok:
+        inv_det = 1.0 / det
+    else:  # zero the refused rows first: their a, b or d may be inf or NaN (inf * 0 warns)
+        inv_det = np.divide(1.0, det, out=np.zeros_like(det), where=ok)
+        a, b, d = np.where(ok, a, 0.0), np.where(ok, b, 0.0), np.where(ok, d, 0.0)
     S_inv = np.empty_like(S)
     S_inv[:, 0, 0] = d * inv_det
     S_inv[:, 1, 1] = a * inv_det
     S_inv[:, 0, 1] = S_inv[:, 1, 0] = -b * inv_det
-    if not ok.all():  # d or b may be inf or NaN there
-        S_inv[~ok] = 0.0
     return S_inv, ok
 
 
@@ -133,7 +149,14 @@ class CandidatePairs:
         return len(self.point)
 
 
-def candidate_pairs(z: np.ndarray, g: np.ndarray, S: np.ndarray, chi2: float, px: float) -> CandidatePairs:
+def candidate_pairs(
+    z: np.ndarray,
+    g: np.ndarray,
+    S: np.ndarray,
+    chi2: float,
+    px: float,
+    S_inverse: tuple[np.ndarray, np.ndarray] | None = None,
+) -> CandidatePairs:
     """Every pair with ``Z_ij < chi2`` (eqs. 11-12) or ``|z_i - g_j| < px``, without the ``N x M`` matrix.
 
     z (M, 2) measurements, g (N, 2) predictions, S (N, 2, 2). A pair inside point ``j``'s ellipse
@@ -142,6 +165,7 @@ def candidate_pairs(z: np.ndarray, g: np.ndarray, S: np.ndarray, chi2: float, px
     ``|e_u| < px``. With the measurements sorted by ``u`` each point's partners in that strip are
     one contiguous run, found by ``searchsorted``; only those runs are evaluated, then tested
     exactly with the arithmetic of :func:`mahalanobis_distances` (same values to the bit).
+    ``S_inverse``: :func:`inverse_2x2` of ``S`` if already computed.
     """
     z = np.asarray(z, dtype=float).reshape(-1, 2)
     g = np.asarray(g, dtype=float).reshape(-1, 2)
@@ -149,8 +173,9 @@ def candidate_pairs(z: np.ndarray, g: np.ndarray, S: np.ndarray, chi2: float, px
     if n == 0 or m == 0:
         empty = np.zeros(0, dtype=np.intp)
         return CandidatePairs(empty, empty.copy(), np.zeros(0), np.zeros(0))
-    S_inv, ok = inverse_2x2(S)
-    half_u = np.sqrt(np.where(ok, chi2 * S[:, 0, 0], 0.0))  # S_uu > 0 where ok
+    S_inv, ok = inverse_2x2(S) if S_inverse is None else S_inverse
+    all_ok = np.count_nonzero(ok) == n
+    half_u = np.sqrt(chi2 * S[:, 0, 0] if all_ok else np.where(ok, chi2 * S[:, 0, 0], 0.0))  # S_uu > 0 where ok
     # widened by a relative 1e-9 so that rounding can never drop a pair the exact test keeps
     half_u = np.maximum(half_u, px) * (1.0 + 1e-9) + 1e-12
     order = np.argsort(z[:, 0], kind="stable")
@@ -163,7 +188,8 @@ def candidate_pairs(z: np.ndarray, g: np.ndarray, S: np.ndarray, chi2: float, px
     e0 = z[meas, 0] - g[point, 0]
     e1 = z[meas, 1] - g[point, 1]
     Z = _quadratic_form(S_inv[point, 0, 0], S_inv[point, 0, 1], S_inv[point, 1, 1], e0, e1)
-    Z[~ok[point]] = np.inf
+    if not all_ok:
+        Z[~ok[point]] = np.inf
     d2 = e0 * e0 + e1 * e1
     keep = ((Z < chi2) | (d2 < px * px)).nonzero()[0]  # then gathers (faster than 4 boolean indexes)
     return CandidatePairs(point[keep], meas[keep], Z[keep], d2[keep])

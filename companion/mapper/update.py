@@ -15,7 +15,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from companion.mapper.matching import inverse_2x2
+from companion.mapper.matching import inverse_2x2, navigation_term_vanishes
+
+
+_IDENTITY = {k: np.eye(k) for k in range(1, 7)}
+
+
+def _identity(dim: int) -> np.ndarray:
+    """``np.eye(dim)``, built once for the state sizes of the models."""
+    eye = _IDENTITY.get(dim)
+    return np.eye(dim) if eye is None else eye
 
 
 def ekf_update(
@@ -26,12 +35,17 @@ def ekf_update(
     C_y: np.ndarray,
     P_x: np.ndarray,
     R_img: np.ndarray,
+    S_inverse: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Eqs. 7-9 (Joseph form) for N features at once.
 
     y (N, D), P_y (N, D, D), innovation ``z - g`` (N, 2), C_x (N, 2, 6), C_y (N, 2, D), P_x (6, 6),
     R_img (2, 2) -> updated y (N, D), P_y (N, D, D) and ``ok`` (N,). A feature whose ``S`` is not
     positive definite, or whose result is not finite, keeps its prior state (``ok = False``).
+
+    ``S_inverse``: ``S^-1`` (N, 2, 2) and its flags (N,) when the matching computed them for the
+    same ``S`` (with a vanishing navigation term, :func:`~companion.mapper.matching.navigation_term_vanishes`,
+    the matching's ``S`` of these features is this ``S``); they are then not computed again.
     """
     y = np.asarray(y, dtype=float)
     P_y = np.asarray(P_y, dtype=float)
@@ -39,20 +53,26 @@ def ekf_update(
     if n == 0:
         return y.copy(), P_y.copy(), np.zeros(0, dtype=bool)
     C_yT = C_y.transpose(0, 2, 1)
-    R_eff = C_x @ P_x @ C_x.transpose(0, 2, 1) + R_img  # (N, 2, 2)
-    S = C_y @ P_y @ C_yT + R_eff
-    S_inv, ok = inverse_2x2(S)  # uses the symmetric part (S_01 + S_10) / 2
+    if navigation_term_vanishes(P_x, C_x):
+        R_eff = R_img  # (2, 2): C_x P_x C_x^T is zero
+    else:
+        R_eff = C_x @ P_x @ C_x.transpose(0, 2, 1) + R_img  # (N, 2, 2)
+    if S_inverse is None:
+        S = C_y @ P_y @ C_yT + R_eff
+        S_inv, ok = inverse_2x2(S)  # uses the symmetric part (S_01 + S_10) / 2
+    else:
+        S_inv, ok = S_inverse[0], S_inverse[1].copy()
 
     K = P_y @ C_yT @ S_inv  # (N, D, 2), eq. 7
     y_new = y + np.einsum("nij,nj->ni", K, innovation)  # eq. 8
-    I_KC = np.eye(dim) - K @ C_y
+    I_KC = _identity(dim) - K @ C_y
     P_new = I_KC @ P_y @ I_KC.transpose(0, 2, 1) + K @ R_eff @ K.transpose(0, 2, 1)  # eq. 9, Joseph
     P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
 
     ok &= (P_new.diagonal(axis1=1, axis2=2) >= 0).all(axis=1)
     if not np.isfinite(y_new.sum() + P_new.sum()):  # (a finite sum: all finite, the usual case)
         ok &= np.isfinite(y_new).all(axis=1) & np.isfinite(P_new).all(axis=(1, 2))
-    if not ok.all():
+    if np.count_nonzero(ok) < n:
         y_new[~ok] = y[~ok]
         P_new[~ok] = P_y[~ok]
     return y_new, P_new, ok
