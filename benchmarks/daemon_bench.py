@@ -248,6 +248,7 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
             control_rate_hz=control.get("rate_hz"),
             control_ticks=control.get("ticks"),
             mapper_step_ms=mapper.get("step_ms"),
+            mapper_step_cpu_ms=mapper.get("step_cpu_ms"),
             frames_mapped=mapper.get("frames_mapped"),
             frames_in=status.get("camera", {}).get("frames"),
             queue_dropped=status.get("camera", {}).get("queue_dropped"),

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import struct
+import time
 
 import numpy as np
 import pytest
@@ -96,6 +97,57 @@ def test_the_reader_maps_times_skips_unsynced_frames_and_survives_a_bad_server()
     assert (cam.unsynced_frames, cam.bad_records, cam.connections) == (1, 1, 2)
     st = cam.stats
     assert (st.delivered, st.rejected_size, st.rejected_blank, st.rejected_time) == (3, 1, 1, 1)
+
+
+def test_a_quiet_server_a_stalled_record_and_a_close_during_a_read():
+    """Over a real socket: a server quiet for longer than the read timeout is a CameraError that
+    keeps the connection (the next frame then arrives on it); a record that stops half-way drops
+    the connection (the reader reconnects); close() ends a read blocked in its thread at once."""
+    async def scenario():
+        connections = []
+        release = asyncio.Event()
+
+        async def serve(reader, writer):
+            connections.append(writer)
+            if len(connections) == 1:
+                await asyncio.sleep(0.6)  # quiet: longer than the 0.3 s read timeout
+                writer.write(encode_frame(2_000_000, 2, _image(2)))
+                writer.write(encode_frame(3_000_000, 3, _image(3))[:HEADER.size + 100])  # stops half-way
+                await writer.drain()
+            elif len(connections) == 2:
+                writer.write(encode_frame(4_000_000, 4, _image(4)))
+                await writer.drain()
+            await release.wait()  # then silent until the test ends
+            writer.close()
+
+        server = await asyncio.start_server(serve, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        cam = StreamCamera(_config(port), lambda t: t, read_timeout_s=0.3)
+        outcomes = []
+        for _ in range(4):
+            try:
+                outcomes.append(await asyncio.wait_for(cam.read(), 5))
+            except CameraError as exc:
+                outcomes.append(str(exc))
+        blocked = asyncio.ensure_future(cam.read())  # nothing more comes: blocked in recv
+        await asyncio.sleep(0.1)
+        t0 = time.monotonic()
+        await cam.close()
+        try:
+            await asyncio.wait_for(blocked, 2)
+        except CameraError as exc:
+            outcomes.append(str(exc))
+        closed_in_s = time.monotonic() - t0
+        release.set()
+        server.close()
+        return outcomes, closed_in_s, cam
+
+    outcomes, closed_in_s, cam = asyncio.run(scenario())
+    assert "no frame for 0.3 s" in outcomes[0]
+    assert outcomes[1].sequence == 2 and outcomes[1].t_s == 2.0
+    assert "connection ended" in outcomes[2]
+    assert outcomes[3].sequence == 4 and np.array_equal(outcomes[3].image, _image(4))
+    assert cam.connections == 2 and len(outcomes) == 5 and closed_in_s < 0.5
 
 
 def test_an_absent_server_is_a_camera_error_not_a_hang():

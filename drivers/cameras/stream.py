@@ -16,6 +16,7 @@ Wire format (docs/cameras.md, "Frame stream"), little-endian, one record per fra
 from __future__ import annotations
 
 import asyncio
+import socket
 import struct
 from collections.abc import Callable
 
@@ -92,7 +93,8 @@ class StreamCamera(CameraSource):
 
     name = "stream"
 
-    def __init__(self, config: CameraConfig, time_map: TimeMap, connect_timeout_s: float = 2.0):
+    def __init__(self, config: CameraConfig, time_map: TimeMap, connect_timeout_s: float = 2.0,
+                 read_timeout_s: float = 2.0):
         self.host, self.port = parse_address(config.stream_address)
         self.name = f"stream:{self.host}:{self.port}"
         self._time_map = time_map
@@ -101,45 +103,61 @@ class StreamCamera(CameraSource):
                                      nominal_period_s=1.0 / config.rate_hz, blank_std_max=config.blank_std_max,
                                      gap_factor=config.gap_factor)
         self._connect_timeout_s = connect_timeout_s
-        self._reader: asyncio.StreamReader | None = None
-        self._writer: asyncio.StreamWriter | None = None
+        self._read_timeout_s = read_timeout_s
+        self._sock: socket.socket | None = None
         self._closed = False
         self.connections = 0
         self.bad_records = 0
         self.unsynced_frames = 0
 
-    async def _connect(self) -> asyncio.StreamReader:
-        try:
-            self._reader, self._writer = await asyncio.wait_for(
-                asyncio.open_connection(self.host, self.port), self._connect_timeout_s)
-        except (OSError, asyncio.TimeoutError) as exc:
-            raise CameraError(f"frame stream {self.host}:{self.port}: cannot connect ({exc or 'timeout'})") from exc
-        self.connections += 1
-        return self._reader
+    # The socket is read by blocking calls in a worker thread (asyncio.to_thread): a frame is
+    # 300 kB, and asyncio's StreamReader takes it in 64 kB pieces on the event loop, holding the
+    # GIL for ~0.7 ms a frame in the loop that also runs the control law; recv_into a buffer of the
+    # frame's size takes ~0.13 ms of a thread that lets go of the GIL while it waits.
 
-    async def _drop_connection(self) -> None:
-        writer, self._reader, self._writer = self._writer, None, None
-        if writer is not None:
-            writer.close()
+    def _connect_blocking(self) -> socket.socket:
+        try:
+            sock = socket.create_connection((self.host, self.port), timeout=self._connect_timeout_s)
+        except OSError as exc:
+            raise CameraError(f"frame stream {self.host}:{self.port}: cannot connect ({exc or 'timeout'})") from exc
+        sock.settimeout(self._read_timeout_s)
+        self.connections += 1
+        return sock
+
+    def _read_record_blocking(self, sock: socket.socket) -> tuple[int, int, int, int, bytearray]:
+        """One record: (time_boot_us, sequence, width, height, payload). Raises FrameStreamError,
+        TimeoutError before a record starts (the connection is still in step), or OSError / EOFError
+        (the connection is not)."""
+        header = _recv_exactly(sock, HEADER.size, first_timeout_ok=True)
+        t_us, seq, w, h, n = decode_header(bytes(header))
+        return t_us, seq, w, h, _recv_exactly(sock, n)
+
+    def _drop_connection(self) -> None:
+        sock, self._sock = self._sock, None
+        if sock is not None:
             try:
-                await writer.wait_closed()
+                sock.shutdown(socket.SHUT_RDWR)
             except OSError:
                 pass
+            sock.close()
 
     async def read(self) -> Frame:
-        if self._closed:
-            raise CameraError("frame stream camera is closed")
         while True:
-            reader = self._reader or await self._connect()
+            if self._closed:
+                raise CameraError("frame stream camera is closed")
+            sock = self._sock
+            if sock is None:
+                sock = self._sock = await asyncio.to_thread(self._connect_blocking)
             try:
-                t_us, seq, w, h, n = decode_header(await reader.readexactly(HEADER.size))
-                payload = await reader.readexactly(n)
+                t_us, seq, w, h, payload = await asyncio.to_thread(self._read_record_blocking, sock)
             except FrameStreamError as exc:
                 self.bad_records += 1
-                await self._drop_connection()
+                self._drop_connection()
                 raise CameraError(f"frame stream {self.host}:{self.port}: {exc}; reconnecting") from exc
-            except (asyncio.IncompleteReadError, OSError) as exc:
-                await self._drop_connection()
+            except _QuietStream as exc:
+                raise CameraError(f"frame stream {self.host}:{self.port}: no frame for {self._read_timeout_s:g} s") from exc
+            except (EOFError, OSError) as exc:
+                self._drop_connection()
                 raise CameraError(f"frame stream {self.host}:{self.port}: connection ended") from exc
             t = self._time_map(t_us * 1e-6)
             if t is None:
@@ -152,4 +170,28 @@ class StreamCamera(CameraSource):
 
     async def close(self) -> None:
         self._closed = True
-        await self._drop_connection()
+        self._drop_connection()  # a read blocked in its thread ends with an error at once
+
+
+class _QuietStream(Exception):
+    """No byte of a new record within the read timeout: the server is quiet, the stream in step."""
+
+
+def _recv_exactly(sock: socket.socket, n: int, first_timeout_ok: bool = False) -> bytearray:
+    """``n`` bytes from ``sock`` into a new buffer (the frame's own memory). EOFError when the
+    connection ends first; a timeout before the first byte is :class:`_QuietStream` when
+    ``first_timeout_ok``, a timeout later an OSError (the stream is out of step)."""
+    buf = bytearray(n)
+    view = memoryview(buf)
+    got = 0
+    while got < n:
+        try:
+            k = sock.recv_into(view[got:])
+        except TimeoutError as exc:
+            if got == 0 and first_timeout_ok:
+                raise _QuietStream() from exc
+            raise
+        if k == 0:
+            raise EOFError(f"connection ended after {got} of {n} bytes")
+        got += k
+    return buf
