@@ -188,6 +188,7 @@ class Daemon:
         self.frame_to_setpoint_ms = Percentiles()
         self.control_jitter_ms = Percentiles()
         self.control_ticks = 0
+        self._setpoint_t = 0.0
         self.last_command: AvoidanceCommand | None = None
         self.last_frame_mapped_t: float | None = None
         # Capture times of the frames whose map update no setpoint has used yet (appended under the
@@ -396,9 +397,10 @@ class Daemon:
         """Fixed-rate loop; also runs at once when the map changed (frame-to-setpoint latency).
 
         Jitter: how late each fixed-rate tick runs. Frame-to-setpoint: for every frame whose map
-        update reached the grid, the time from the frame's capture to the end of the first control
-        step whose law read the grid with that update in it (the setpoint commanded, or published as
-        advisory); a frame whose update waits for a later step (navigation stale) counts that wait.
+        update reached the grid, the time from the frame's capture to the setpoint of the first
+        control step whose law read the grid with that update in it (sent to the autopilot, or
+        decided as advisory; the status text and the Zenoh publication follow it); a frame whose
+        update waits for a later step (navigation stale) counts that wait.
         """
         period = 1.0 / self.cfg.control.rate_hz
         next_tick = self.clock.now() + period
@@ -422,7 +424,7 @@ class Daemon:
                 self.notifier.watchdog()
             self._updates_in_setpoint = 0
             if self.control_step(now) and self._updates_in_setpoint:
-                t_setpoint = self.clock.now()
+                t_setpoint = self._setpoint_t  # when the setpoint left (or the advisory was decided)
                 for _ in range(min(self._updates_in_setpoint, len(self._map_updates))):
                     t_frame = self._map_updates.popleft()
                     self.frame_to_setpoint_ms.add(self.clock.wall_seconds(t_setpoint - t_frame) * 1e3)
@@ -461,6 +463,7 @@ class Daemon:
             sent = self.link.send_setpoint(velocity, yaw_rad=yaw)
             record = self.link.last_setpoint
             self.command_state = "commanding" if sent else f"advisory ({record.reason if record else 'not sent'})"
+        self._setpoint_t = self.clock.now()  # frame-to-setpoint ends here; the status text and publishing follow
         airborne = nav.altitude_m >= self.cfg.control.min_alt_m
         if airborne and cmd.engaged != self.engaged and now - self._engaged_changed_t >= STATUSTEXT_HOLD_S:
             # Held for a few seconds so a law that flickers at the threshold does not flood the GCS.
