@@ -41,26 +41,31 @@ def reference_rotation(R_nc: np.ndarray) -> np.ndarray:
 
 def direction_vector(psi: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """``m(psi, theta)`` of eq. 3 in the reference frame: (N,), (N,) -> unit vectors (N, 3)."""
-    st, ct = np.sin(theta), np.cos(theta)
-    m = np.empty(np.shape(psi) + (3,))
-    m[..., 0] = st
-    m[..., 1] = ct * np.sin(psi)
-    m[..., 2] = ct * np.cos(psi)
-    return m
+    return _direction_terms(psi, theta)[1]
 
 
 def direction_derivatives(psi: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``dm/dpsi`` and ``dm/dtheta`` (N, 3) each."""
+    _, _, dm_dpsi, dm_dtheta = _direction_terms(psi, theta)
+    return dm_dpsi, dm_dtheta
+
+
+def _direction_terms(psi: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``cos theta`` (N,), ``m = [sin theta, cos theta sin psi, cos theta cos psi]``, ``dm/dpsi``
+    and ``dm/dtheta`` (N, 3) each, from one ``sin`` and one ``cos`` of each angle."""
     st, ct, sp, cp = np.sin(theta), np.cos(theta), np.sin(psi), np.cos(psi)
-    d = np.empty((2,) + np.shape(psi) + (3,))  # one allocation for both
-    dm_dpsi, dm_dtheta = d[0], d[1]
+    d = np.empty((3,) + np.shape(psi) + (3,))  # m, dm/dpsi, dm/dtheta in one allocation
+    m, dm_dpsi, dm_dtheta = d[0], d[1], d[2]
+    m[..., 0] = st
+    m[..., 1] = ct * sp
+    m[..., 2] = ct * cp
     dm_dpsi[..., 0] = 0.0
     dm_dpsi[..., 1] = ct * cp
     dm_dpsi[..., 2] = -ct * sp
     dm_dtheta[..., 0] = ct
     dm_dtheta[..., 1] = -st * sp
     dm_dtheta[..., 2] = -st * cp
-    return dm_dpsi, dm_dtheta
+    return ct, m, dm_dpsi, dm_dtheta
 
 
 def angles_from_vector(h_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -118,19 +123,7 @@ def ray_directions(y: np.ndarray, R_ref: np.ndarray) -> RayDirections:
     """Eq. 3's direction terms of states (N, 6) with rotations (N, 3, 3): four ``sin``/``cos``
     calls for the step instead of one set per function."""
     y = np.asarray(y, dtype=float)
-    psi, theta = y[:, PSI], y[:, THETA]
-    st, ct, sp, cp = np.sin(theta), np.cos(theta), np.sin(psi), np.cos(psi)
-    d = np.empty((3,) + np.shape(psi) + (3,))  # m, dm/dpsi, dm/dtheta in one allocation
-    m, dm_dpsi, dm_dtheta = d[0], d[1], d[2]
-    m[..., 0] = st
-    m[..., 1] = ct * sp
-    m[..., 2] = ct * cp
-    dm_dpsi[..., 0] = 0.0
-    dm_dpsi[..., 1] = ct * cp
-    dm_dpsi[..., 2] = -ct * sp
-    dm_dtheta[..., 0] = ct
-    dm_dtheta[..., 1] = -st * sp
-    dm_dtheta[..., 2] = -st * cp
+    ct, m, dm_dpsi, dm_dtheta = _direction_terms(y[:, PSI], y[:, THETA])
     return RayDirections(ct, np.einsum("nij,nj->ni", R_ref, m), dm_dpsi, dm_dtheta)
 
 
