@@ -162,6 +162,17 @@ class StatusListener:
             self.session.close()
 
 
+def stop_process(proc: subprocess.Popen, grace_s: float = 10.0) -> int | None:
+    """SIGTERM, then SIGKILL after ``grace_s``; the exit code (the daemon saves its map on SIGTERM)."""
+    proc.terminate()
+    try:
+        proc.wait(grace_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5)
+    return proc.returncode
+
+
 def _wait(pred, timeout_s: float, poll_s: float = 0.1) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -264,13 +275,7 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
         if pilot is not None:
             pilot.stop.set()
         if daemon is not None:
-            daemon.terminate()
-            try:
-                daemon.wait(10)
-            except subprocess.TimeoutExpired:
-                daemon.kill()
-                daemon.wait(5)
-            result["daemon_exit"] = daemon.returncode
+            result["daemon_exit"] = stop_process(daemon)
             if t_air is not None:
                 result["steady_state"] = steady_state(samples_path, t_air + SETTLE_S)
                 result["t_airborne_monotonic"] = t_air

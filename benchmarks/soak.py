@@ -116,7 +116,7 @@ def run_soak(minutes: float, speedup: float = 20.0, every_s: float = 10.0, warmu
              log=print) -> dict:
     """Fly for ``minutes`` wall minutes after take-off; returns the samples, the trends and what
     went wrong (``error``), if anything."""
-    from benchmarks.daemon_bench import Pilot, _wait, _wait_listener, free_port
+    from benchmarks.daemon_bench import Pilot, _wait, _wait_listener, free_port, stop_process
     from drivers.sim.harness import MavClient, SimVehicleProcess
 
     result: dict = {"minutes": minutes, "speedup": speedup, "every_s": every_s, "error": "", "samples": []}
@@ -185,13 +185,7 @@ def run_soak(minutes: float, speedup: float = 20.0, every_s: float = 10.0, warmu
         if pilot is not None:
             pilot.stop.set()
         if daemon is not None:
-            daemon.terminate()
-            try:
-                daemon.wait(10)
-            except subprocess.TimeoutExpired:
-                daemon.kill()
-                daemon.wait(5)
-            result["daemon_exit"] = daemon.returncode
+            result["daemon_exit"] = stop_process(daemon)
         if listener is not None:
             listener.close()
         sim.stop()

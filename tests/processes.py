@@ -107,3 +107,14 @@ class ZenohListener:
         for s in self._subs:
             s.undeclare()
         self.session.close()
+
+
+def poll_until(station, predicate, timeout_s: float = 5.0) -> bool:
+    """Poll a ground station (``station.poll()``) until ``predicate()`` holds; False after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        station.poll()
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return False

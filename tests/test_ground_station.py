@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import time
 
 import cv2
 import numpy as np
@@ -14,7 +13,7 @@ from companion.terrain.codec import encode_tile
 from companion.terrain.tile import Tile
 from drivers.ground_station import UNKNOWN_BGR, GroundMap, GroundStation
 from drivers.zenoh_bus import BusKeys, ZenohBus, json_payload
-from tests.processes import free_port
+from tests.processes import free_port, poll_until
 
 T = 8
 CELL = 2.0
@@ -153,16 +152,6 @@ def cfg(**kw) -> ZenohConfig:
     return ZenohConfig(**base)
 
 
-def poll_until(station: GroundStation, predicate, timeout=5.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        station.poll()
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return False
-
-
 def test_late_ground_station_reassembles_the_map_and_follows_changes():
     ep = f"tcp/127.0.0.1:{free_port()}"
     with ZenohBus(cfg(listen=(ep,))) as bus:
@@ -199,7 +188,7 @@ def test_station_asks_again_when_the_vehicle_appears():
         assert station.syncs == 1 and not station.map.tiles
         provider = lambda: [(t.tx, t.ty, encode_tile(t)) for t in tiles]  # noqa: E731
         with ZenohBus(cfg(connect=(ep,)), map_provider=provider) as bus:
-            assert poll_until(station, lambda: len(station.map.tiles) == len(tiles), timeout=8)
+            assert poll_until(station, lambda: len(station.map.tiles) == len(tiles), timeout_s=8)
             assert station.syncs >= 2
             assert all(station.map.tiles[(t.tx, t.ty)].same_as(t) for t in tiles)
             assert bus.stats().published_tiles == 0

@@ -22,7 +22,7 @@ from companion.terrain.tile import Tile
 from drivers.ground_station import GroundStation
 from drivers.sim.harness import MavClient, SimVehicleProcess
 from drivers.zenoh_bus import BusKeys, ZenohBus, json_payload
-from tests.processes import companion, free_port, stop, write_config
+from tests.processes import companion, free_port, poll_until, stop, write_config
 
 
 def cfg(**kw) -> ZenohConfig:
@@ -41,16 +41,6 @@ def raw_session(listen=(), connect=()) -> zenoh.Session:
 
 def a_tile(tx: int, ty: int, fill: float) -> Tile:
     return Tile(tx, ty, np.full((8, 8), fill, np.float32), np.full((8, 8), 0.1, np.float32), np.ones((8, 8), np.uint32))
-
-
-def poll_until(station: GroundStation, predicate, timeout_s: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        station.poll()
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 def test_garbage_published_to_a_ground_station_is_counted_and_the_map_survives():
