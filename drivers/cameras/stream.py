@@ -24,6 +24,7 @@ import numpy as np
 
 from companion.config import CameraConfig
 from companion.messages import Frame
+from drivers.addresses import parse_host_port
 from drivers.cameras.base import CameraError, CameraSource
 from drivers.cameras.checks import CameraStats, FrameChecker
 
@@ -65,17 +66,8 @@ def decode_header(header: bytes) -> tuple[int, int, int, int, int]:
 
 
 def parse_address(address: str) -> tuple[str, int]:
-    """``HOST:PORT`` -> (host, port); ValueError naming the problem."""
-    host, sep, port = address.rpartition(":")
-    if not sep or not host:
-        raise ValueError(f"camera.stream_address: expected HOST:PORT, got {address!r}")
-    try:
-        p = int(port)
-    except ValueError:
-        raise ValueError(f"camera.stream_address: port must be a number, got {address!r}") from None
-    if not 1 <= p <= 65535:
-        raise ValueError(f"camera.stream_address: port must be 1..65535, got {p}")
-    return host, p
+    """``camera.stream_address`` ``HOST:PORT`` -> (host, port); ValueError naming the key."""
+    return parse_host_port(address, "camera.stream_address", allow_port_zero=False)
 
 
 class StreamCamera(CameraSource):

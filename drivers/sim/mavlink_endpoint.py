@@ -134,20 +134,6 @@ class Link:
             self.inbound.append(m)
 
 
-def parse_host_port(text: str, what: str) -> tuple[str, int]:
-    """'HOST:PORT' -> (host, port); raises ValueError naming ``what`` on bad input."""
-    host, sep, port = str(text).rpartition(":")
-    if not sep or not host:
-        raise ValueError(f"{what}: expected HOST:PORT, got {text!r}")
-    try:
-        port_n = int(port)
-    except ValueError:
-        raise ValueError(f"{what}: port must be an integer, got {port!r}") from None
-    if not 0 <= port_n <= 65535:
-        raise ValueError(f"{what}: port must be in 0..65535, got {port_n}")
-    return host, port_n
-
-
 class _Datagram(asyncio.DatagramProtocol):
     def __init__(self, endpoint):
         self.endpoint = endpoint

@@ -35,10 +35,9 @@ import yaml
 
 from companion.clock import Clock
 from companion.config import CompanionConfig, ConfigError, config_from_dict, load_config
+from drivers.addresses import parse_host_port
 from drivers.sim.autopilot import Home, SimAutopilot
-from drivers.sim.mavlink_endpoint import (
-    Link, TcpListenEndpoint, UdpInEndpoint, UdpOutEndpoint, parse_host_port,
-)
+from drivers.sim.mavlink_endpoint import Link, TcpListenEndpoint, UdpInEndpoint, UdpOutEndpoint
 
 log = logging.getLogger("companion.sim")
 
