@@ -192,7 +192,7 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
     ``daemon_cores`` / ``sim_cores``: CPU sets ("1", "0,1", "-" = inherit) of the two processes;
     by default the daemon has one core and the simulator (which stands in for the autopilot and
     the camera's world) the other. ``switch_interval_s``: the daemon's GIL switch interval
-    (``sys.setswitchinterval``; None = Python's default, 5 ms). ``keep_samples``: copy the probe's
+    (``control.gil_switch_interval_ms``; None = the configuration's, 1 ms; 0 = Python's default, 5 ms). ``keep_samples``: copy the probe's
     samples (JSON, :mod:`benchmarks.daemon_probe`) to this path. ``worker_policy``: "idle" or
     "nice" lowers the mapper and render threads' priority (an experiment; see the probe).
     ``mapper_process``: run the daemon's mapper in a child process (companion/mapper_process.py)
@@ -222,6 +222,8 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
         sim.start()
         zenoh_port = free_port()
         cfg = daemon_config(sim.endpoints["tcp"], zenoh_port, os.path.join(tmp.name, "map"), rate_hz)
+        if switch_interval_s is not None:  # 0: Python's default (5 ms)
+            cfg.setdefault("control", {})["gil_switch_interval_ms"] = 1e3 * switch_interval_s
         if camera == "stream":
             cfg["camera"].update(source="stream", stream_address=f"127.0.0.1:{sim.endpoints['camera']}")
         cfg_path = os.path.join(tmp.name, "bench.yaml")
@@ -231,7 +233,7 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
         pilot = Pilot(pilot_client, takeoff)
         pilot.start()
         with open(daemon_log, "w") as err:
-            daemon = subprocess.Popen(launcher("benchmarks.daemon_probe", daemon_cores, switch_interval_s)
+            daemon = subprocess.Popen(launcher("benchmarks.daemon_probe", daemon_cores)
                                       + ["--config", cfg_path, "--samples", samples_path, "--log-level", "WARNING",
                                          "--worker-policy", worker_policy]
                                       + (["--mapper-process"] if mapper_process else []),

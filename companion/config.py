@@ -202,6 +202,7 @@ class ControlConfig:
     min_alt_m: float = _f(5.0, "m", -1e4, 1e4, "no setpoints below this altitude (local frame): takeoff and landing stay the autopilot's")
     cruise_speed_mps: float = _f(6.0, "m/s", 0.0, 50.0)
     waypoints_ne_m: tuple[tuple[float, float], ...] = _f((), "m", doc="horizontal route (north, east) flown when commanding")
+    gil_switch_interval_ms: float = _f(1.0, "ms", 0.0, 100.0, "how long the mapper thread may keep the control loop waiting for Python's lock (sys.setswitchinterval); 0 = Python's default, 5 ms")
 
 
 @dataclass(frozen=True, slots=True)

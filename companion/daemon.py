@@ -613,6 +613,11 @@ class Daemon:
     async def run(self) -> None:
         """Run until :meth:`request_stop` (SIGTERM / SIGINT in :func:`main`)."""
         self._loop = asyncio.get_running_loop()
+        if self.cfg.control.gil_switch_interval_ms > 0:
+            # The mapper thread holds Python's lock between its OpenCV calls (~3 ms a frame); a
+            # control tick or a frame arriving meanwhile waits until the lock is handed over, after
+            # at most this interval (docs/performance.md, "Session 4").
+            sys.setswitchinterval(self.cfg.control.gil_switch_interval_ms * 1e-3)
         if self.cfg.zenoh.enabled:
             from drivers.zenoh_bus import ZenohBus
 

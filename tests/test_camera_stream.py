@@ -105,12 +105,12 @@ def test_a_quiet_server_a_stalled_record_and_a_close_during_a_read():
     the connection (the reader reconnects); close() ends a read blocked in its thread at once."""
     async def scenario():
         connections = []
-        release = asyncio.Event()
+        release, quiet_seen = asyncio.Event(), asyncio.Event()
 
         async def serve(reader, writer):
             connections.append(writer)
             if len(connections) == 1:
-                await asyncio.sleep(0.6)  # quiet: longer than the 0.3 s read timeout
+                await quiet_seen.wait()  # quiet until the reader has given up once (0.3 s read timeout)
                 writer.write(encode_frame(2_000_000, 2, _image(2)))
                 writer.write(encode_frame(3_000_000, 3, _image(3))[:HEADER.size + 100])  # stops half-way
                 await writer.drain()
@@ -129,6 +129,7 @@ def test_a_quiet_server_a_stalled_record_and_a_close_during_a_read():
                 outcomes.append(await asyncio.wait_for(cam.read(), 5))
             except CameraError as exc:
                 outcomes.append(str(exc))
+                quiet_seen.set()
         blocked = asyncio.ensure_future(cam.read())  # nothing more comes: blocked in recv
         await asyncio.sleep(0.1)
         t0 = time.monotonic()

@@ -97,6 +97,7 @@ class StreamCamera(CameraSource):
         self._connect_timeout_s = connect_timeout_s
         self._read_timeout_s = read_timeout_s
         self._sock: socket.socket | None = None
+        self._pending: asyncio.Future | None = None  # the read of the next frame, started with the last one
         self._closed = False
         self.connections = 0
         self.bad_records = 0
@@ -116,15 +117,26 @@ class StreamCamera(CameraSource):
         self.connections += 1
         return sock
 
-    def _read_record_blocking(self, sock: socket.socket) -> tuple[int, int, int, int, bytearray]:
-        """One record: (time_boot_us, sequence, width, height, payload). Raises FrameStreamError,
-        TimeoutError before a record starts (the connection is still in step), or OSError / EOFError
-        (the connection is not)."""
+    def _read_frame_blocking(self, sock: socket.socket) -> Frame | None:
+        """The next record as a checked frame, or None when it was dropped (no time yet, or refused
+        by the frame checks; counted). Runs in the reader thread, checks included: NumPy lets go of
+        the GIL inside them, and on the event loop the mapper thread would then keep the loop
+        waiting for it. Raises FrameStreamError, :class:`_QuietStream` before a record starts (the
+        connection is still in step), or OSError / EOFError (the connection is not)."""
         header = _recv_exactly(sock, HEADER.size, first_timeout_ok=True)
         t_us, seq, w, h, n = decode_header(bytes(header))
-        return t_us, seq, w, h, _recv_exactly(sock, n)
+        payload = _recv_exactly(sock, n)
+        t = self._time_map(t_us * 1e-6)
+        if t is None:
+            self.unsynced_frames += 1
+            return None  # no time yet: the next frame may have one
+        image = self._checker.admit(np.frombuffer(payload, np.uint8).reshape(h, w), float(t))
+        if image is None:
+            return None  # counted in stats and logged by the checker
+        return Frame(t_s=float(t), image=image, sequence=int(seq), source="stream")
 
     def _drop_connection(self) -> None:
+        # (a pending read of this connection ends with an error, which read() or close() collects)
         sock, self._sock = self._sock, None
         if sock is not None:
             try:
@@ -140,8 +152,9 @@ class StreamCamera(CameraSource):
             sock = self._sock
             if sock is None:
                 sock = self._sock = await asyncio.to_thread(self._connect_blocking)
+            pending, self._pending = self._pending, None
             try:
-                t_us, seq, w, h, payload = await asyncio.to_thread(self._read_record_blocking, sock)
+                frame = await (pending or self._start_read(sock))
             except FrameStreamError as exc:
                 self.bad_records += 1
                 self._drop_connection()
@@ -151,18 +164,24 @@ class StreamCamera(CameraSource):
             except (EOFError, OSError) as exc:
                 self._drop_connection()
                 raise CameraError(f"frame stream {self.host}:{self.port}: connection ended") from exc
-            t = self._time_map(t_us * 1e-6)
-            if t is None:
-                self.unsynced_frames += 1
-                continue  # no time yet: the next frame may have one
-            image = self._checker.admit(np.frombuffer(payload, np.uint8).reshape(h, w), float(t))
-            if image is None:
-                continue  # counted in stats and logged by the checker
-            return Frame(t_s=float(t), image=image, sequence=int(seq), source="stream")
+            if frame is not None:
+                # The next frame is read from now on, so that the caller's work with this one (the
+                # mapper's queue wakes the mapper thread) does not wait for the read to be set up.
+                self._pending = self._start_read(sock)
+                return frame
+
+    def _start_read(self, sock: socket.socket) -> asyncio.Future:
+        return asyncio.ensure_future(asyncio.to_thread(self._read_frame_blocking, sock))
 
     async def close(self) -> None:
         self._closed = True
         self._drop_connection()  # a read blocked in its thread ends with an error at once
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            try:
+                await asyncio.wait_for(pending, 1.0)
+            except Exception:  # noqa: BLE001 - the read ends with the connection: its error is expected
+                pass
 
 
 class _QuietStream(Exception):
