@@ -827,6 +827,9 @@ def test_autopilot_reboot_redoes_time_sync_and_never_mixes_time_bases(tmp_path):
             await wait_for(lambda: d.link.timesync.source == "TIMESYNC" and d.frames_mapped >= 3, 30, "synchronised and mapping")
             await asyncio.sleep(1.0)
             offset_before = d.link.timesync.offset_s
+            # The checks below tell the boots apart by their clocks (> 3 s apart): the offset is the
+            # companion time of this boot's start, so let the boot be at least 3.5 s old first.
+            await asyncio.sleep(max(0.0, 3.5 - (d.clock.now() - offset_before)))
             await asyncio.to_thread(sim.stop)
             t_restart, since = d.clock.now(), time.monotonic()
             sim = await asyncio.to_thread(start_vehicle, tmp_path, "sim2")
