@@ -11,7 +11,9 @@ Pipeline for one grey frame (``H x W``, ``uint8``):
 2. ``candidate_maxima``: 3x3 local maxima of ``R`` above ``max(quality * R_best, floor)``,
    inside the valid region (image edges, a caller's mask and black borders eroded by the
    margin). One image-wide pass finds the pixels above the threshold (a few percent); the
-   local-maximum test then runs on those only.
+   local-maximum test then runs on those only. ``__call__`` looks first above a higher level set
+   by the last frame (``maxima_above``; the strongest candidates are the same) and takes all of
+   them only when those are too few.
 3. ``refine_corners``: sub-pixel corner positions of the strongest candidates (OpenCV's
    ``cornerSubPix``, Förstner's gradient-orthogonality least squares); a corner that moves out
    of the valid region is dropped.
