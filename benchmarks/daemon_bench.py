@@ -182,10 +182,15 @@ def _wait(pred, timeout_s: float, poll_s: float = 0.1) -> bool:
     return False
 
 
+# control.realtime_priority on the vehicle: the service unit's LimitRTPRIO (systemd/companion.service)
+VEHICLE_REALTIME_PRIORITY = 10
+
+
 def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=print, daemon_cores: str = "1",
                          sim_cores: str = "0", switch_interval_s: float | None = None,
                          keep_samples: str | None = None, worker_policy: str = "default",
-                         mapper_process: bool = False, camera: str = "stream") -> dict:
+                         mapper_process: bool = False, camera: str = "stream",
+                         realtime_priority: int = VEHICLE_REALTIME_PRIORITY) -> dict:
     """Fly the circuit with the daemon mapping at ``rate_hz`` for ``duration_s`` after take-off;
     returns the daemon's control figures (and what went wrong, if anything).
 
@@ -199,14 +204,16 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
     instead of its worker thread. ``camera``: "stream" (default) = the simulator renders the camera
     at the true pose of each exposure and sends the frames over TCP stamped in the autopilot's time
     (``companion sim --camera-listen``; the camera has its own hardware, as on a vehicle);
-    "synthetic" = the daemon renders them itself from SIM_STATE, in its own process."""
+    "synthetic" = the daemon renders them itself from SIM_STATE, in its own process.
+    ``realtime_priority``: the daemon's ``control.realtime_priority`` (the vehicle's setting, as the
+    service unit allows it; 0 = normal scheduling); what the daemon got is in ``realtime``."""
     if camera not in ("stream", "synthetic"):
         raise ValueError(f"camera must be 'stream' or 'synthetic', got {camera!r}")
     from drivers.sim.harness import MavClient, SimVehicleProcess
 
     result: dict = {"duration_s": duration_s, "camera_rate_hz": rate_hz, "error": "", "daemon_cores": daemon_cores,
                     "sim_cores": sim_cores, "switch_interval_s": switch_interval_s, "worker_policy": worker_policy,
-                    "mapper_process": mapper_process, "camera": camera}
+                    "mapper_process": mapper_process, "camera": camera, "realtime_priority": realtime_priority}
     tmp = tempfile.TemporaryDirectory(prefix="companion-bench-")
     pilot_client = MavClient.udp_listener()
     sim = SimVehicleProcess(["--flavour", "ardupilot", "--scenario", "default", "--tcp-listen", "127.0.0.1:0",
@@ -222,6 +229,7 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
         sim.start()
         zenoh_port = free_port()
         cfg = daemon_config(sim.endpoints["tcp"], zenoh_port, os.path.join(tmp.name, "map"), rate_hz)
+        cfg.setdefault("control", {})["realtime_priority"] = int(realtime_priority)
         if switch_interval_s is not None:  # 0: Python's default (5 ms)
             cfg.setdefault("control", {})["gil_switch_interval_ms"] = 1e3 * switch_interval_s
         if camera == "stream":
@@ -260,6 +268,7 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
             frame_to_setpoint_ms=control.get("frame_to_setpoint_ms"),
             control_rate_hz=control.get("rate_hz"),
             control_ticks=control.get("ticks"),
+            realtime=control.get("realtime"),
             mapper_step_ms=mapper.get("step_ms"),
             mapper_step_cpu_ms=mapper.get("step_cpu_ms"),
             frames_mapped=mapper.get("frames_mapped"),

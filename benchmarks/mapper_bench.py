@@ -62,6 +62,13 @@ def variant(flight: Flight, n_features: int, grid=None, loop: bool = False) -> V
     return Variant(make, grid, reference_loop.loop_reference if loop else None)
 
 
+def fresh_grid(flight: Flight) -> Callable[[], object]:
+    """A factory of empty terrain maps of the flight's configuration (one per mapper run)."""
+    from companion.terrain import TerrainGrid
+
+    return lambda: TerrainGrid.from_config(flight.cfg.terrain)
+
+
 def run_interleaved(flight: Flight, variants: dict, repeats: int = 1, warmup_frames: int = 30,
                     frames: int | None = None, with_floor: bool = False) -> dict:
     """Time ``Mapper.step`` of every variant over the flight, frame by frame in turn (the order

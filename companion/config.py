@@ -203,6 +203,7 @@ class ControlConfig:
     cruise_speed_mps: float = _f(6.0, "m/s", 0.0, 50.0)
     waypoints_ne_m: tuple[tuple[float, float], ...] = _f((), "m", doc="horizontal route (north, east) flown when commanding")
     gil_switch_interval_ms: float = _f(1.0, "ms", 0.0, 100.0, "how long the mapper thread may keep the control loop waiting for Python's lock (sys.setswitchinterval); 0 = Python's default, 5 ms")
+    realtime_priority: int = _f(0, "", 0, 99, "SCHED_FIFO priority of the control loop's thread, so a busy mapper never delays a tick (Linux; needs root, CAP_SYS_NICE or LimitRTPRIO); 0 = normal scheduling")
 
 
 @dataclass(frozen=True, slots=True)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import collections
+import concurrent.futures
 import copy
 import logging
 import math
@@ -34,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from companion import realtime
 from companion.avoidance import AvoidanceCommand, PullUpLaw
 from companion.clock import Clock
 from companion.config import CompanionConfig, ConfigError, load_config
@@ -166,6 +168,9 @@ class Daemon:
         self.notifier = SystemdNotifier()
         self.record_dir = record_dir
         self.frames = FrameQueue(maxlen=2)
+        # control.realtime_priority: what the loop's thread got ({priority, active, reason}; None: not asked)
+        self.realtime_state: dict | None = None
+        self._snapshot_executor: concurrent.futures.ThreadPoolExecutor | None = None
         self.camera: Any = None
         self.bus: Any = None
         self.recorder: Any = None
@@ -562,6 +567,7 @@ class Daemon:
                 "rate_hz": self.cfg.control.rate_hz, "ticks": self.control_ticks,
                 "jitter_ms": self.control_jitter_ms.summary(),
                 "frame_to_setpoint_ms": self.frame_to_setpoint_ms.summary(),
+                "realtime": self.realtime_state,
                 "lap": self.lap,
             },
             "snapshots": {
@@ -599,7 +605,15 @@ class Daemon:
     async def _snapshot_loop(self) -> None:
         while not self._stop.is_set():
             await self.clock.sleep(self.cfg.persistence.snapshot_interval_s)
-            await asyncio.to_thread(self.save_snapshot)
+            await self._save_snapshot_in_background()
+
+    async def _save_snapshot_in_background(self) -> bool:
+        """:meth:`save_snapshot` on its own thread, at normal scheduling (a thread the loop's thread
+        starts does not inherit its real-time policy, companion/realtime.py): writing the map is
+        bulk work that must not hold up the control loop or the I/O threads."""
+        if self._snapshot_executor is None:
+            self._snapshot_executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="companion-snapshot")
+        return await asyncio.get_running_loop().run_in_executor(self._snapshot_executor, self.save_snapshot)
 
     # ---- lifecycle -------------------------------------------------------------------------
 
@@ -631,6 +645,7 @@ class Daemon:
             self.link.record_telemetry(self.recorder.telemetry_path)
         self._mapper_thread = threading.Thread(target=self._mapper_worker, name="mapper", daemon=True)
         self._mapper_thread.start()
+        scheduling_before = self._enter_realtime()  # after the threads that must stay at normal priority
         self.notifier.ready("starting: waiting for the autopilot")
         log.info("companion running: link %s, camera %s, mapper %s, commanding %s",
                  self.cfg.link.connection, self.cfg.camera.source, self.cfg.mapper.parameterisation,
@@ -648,6 +663,27 @@ class Daemon:
             pass
         finally:
             await self._shutdown()
+            realtime.restore(scheduling_before)
+
+    def _enter_realtime(self) -> realtime.Scheduling | None:
+        """Put the event loop's thread under ``SCHED_FIFO`` at ``control.realtime_priority``
+        (companion/realtime.py). The executor's threads (camera reads: short, and on the frame's
+        path to the setpoint) start one priority below it, so the loop preempts them and they
+        preempt the mapper; the mapper and snapshot threads stay at normal scheduling. Returns the
+        thread's scheduling before (None: unchanged)."""
+        priority = self.cfg.control.realtime_priority
+        if priority <= 0:
+            return None
+        executor = concurrent.futures.ThreadPoolExecutor(thread_name_prefix="companion-io",
+                                                         initializer=realtime.below, initargs=(priority,))
+        asyncio.get_running_loop().set_default_executor(executor)
+        before, reason = realtime.enter_fifo(priority)
+        self.realtime_state = {"priority": priority, "active": not reason, "reason": reason}
+        if reason:
+            log.warning("control loop at normal priority: %s; a busy mapper can delay control ticks", reason)
+        else:
+            log.info("control loop thread at SCHED_FIFO priority %d (mapper and I/O threads at normal priority)", priority)
+        return before
 
     async def _shutdown(self) -> None:
         self.notifier.stopping()
@@ -656,7 +692,9 @@ class Daemon:
             await asyncio.to_thread(self._mapper_thread.join, 2.0)
         if isinstance(self.mapper, MapperProcess):
             await asyncio.to_thread(self.mapper.close, 1.0)
-        saved = await asyncio.to_thread(self.save_snapshot)
+        saved = await self._save_snapshot_in_background()
+        self._snapshot_executor.shutdown(wait=False)
+        self._snapshot_executor = None
         log.info("map %s at shutdown (%s)", "saved" if saved else "NOT saved", self.snapshot_path)
         if self.camera is not None:
             try:

@@ -538,9 +538,12 @@ def test_service_unit_runs_unprivileged_and_hardened():
     assert one("PrivateTmp") == "yes" and one("StateDirectory") == "companion"
     assert CompanionConfig().persistence.directory == "/var/lib/companion"
     for key in ("ProtectKernelTunables", "ProtectKernelModules", "ProtectKernelLogs", "ProtectControlGroups",
-                "ProtectClock", "ProtectHostname", "RestrictNamespaces", "RestrictRealtime", "RestrictSUIDSGID",
+                "ProtectClock", "ProtectHostname", "RestrictNamespaces", "RestrictSUIDSGID",
                 "LockPersonality", "RemoveIPC", "PrivateMounts"):
         assert one(key) == "yes", key
+    # Real-time scheduling: allowed for the control loop's thread (control.realtime_priority), and
+    # only up to a low priority, so the service can never outrank the kernel's and other RT tasks.
+    assert one("RestrictRealtime") == "no" and 1 <= int(one("LimitRTPRIO")) <= 20
     assert one("ProtectProc") == "invisible" and one("SystemCallArchitectures") == "native"
     assert "@system-service" in one("SystemCallFilter").split()
     assert set(one("RestrictAddressFamilies").split()) <= {"AF_UNIX", "AF_INET", "AF_INET6", "AF_NETLINK"}
