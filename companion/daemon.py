@@ -627,6 +627,12 @@ class Daemon:
     async def run(self) -> None:
         """Run until :meth:`request_stop` (SIGTERM / SIGINT in :func:`main`)."""
         self._loop = asyncio.get_running_loop()
+        if self.cfg.control.realtime_priority > 0:
+            # The I/O threads (camera reads: on the frame's way to the setpoint) one priority below
+            # the control loop's thread (companion/realtime.py); normal scheduling where refused.
+            self._loop.set_default_executor(concurrent.futures.ThreadPoolExecutor(
+                thread_name_prefix="companion-io", initializer=realtime.below,
+                initargs=(self.cfg.control.realtime_priority,)))
         if self.cfg.control.gil_switch_interval_ms > 0:
             # The mapper thread holds Python's lock between its OpenCV calls (~3 ms a frame); a
             # control tick or a frame arriving meanwhile waits until the lock is handed over, after
@@ -667,16 +673,13 @@ class Daemon:
 
     def _enter_realtime(self) -> realtime.Scheduling | None:
         """Put the event loop's thread under ``SCHED_FIFO`` at ``control.realtime_priority``
-        (companion/realtime.py). The executor's threads (camera reads: short, and on the frame's
-        path to the setpoint) start one priority below it, so the loop preempts them and they
-        preempt the mapper; the mapper and snapshot threads stay at normal scheduling. Returns the
-        thread's scheduling before (None: unchanged)."""
+        (companion/realtime.py): it preempts the mapper thread, which stays at normal scheduling,
+        as do the snapshot thread and the threads it starts from now on (``SCHED_RESET_ON_FORK``);
+        the executor's threads run one priority below it (:meth:`run`). Returns the thread's
+        scheduling before (None: unchanged)."""
         priority = self.cfg.control.realtime_priority
         if priority <= 0:
             return None
-        executor = concurrent.futures.ThreadPoolExecutor(thread_name_prefix="companion-io",
-                                                         initializer=realtime.below, initargs=(priority,))
-        asyncio.get_running_loop().set_default_executor(executor)
         before, reason = realtime.enter_fifo(priority)
         self.realtime_state = {"priority": priority, "active": not reason, "reason": reason}
         if reason:
