@@ -13,7 +13,9 @@ snapshots: TerrainGrid -> persistence.directory/terrain.snapshot (atomic, checks
 The mapper is CPU work; it runs in one worker thread owned by the daemon (NumPy and OpenCV
 release the GIL; or, with ``mapper_process=True``, in a child process driven by that thread)
 fed by a bounded queue that drops the oldest frame, so a slow frame never delays the control loop. The grid is shared between that thread and the event loop under one
-lock. SIGTERM or SIGINT ends every task, saves the map and exits within about two seconds.
+lock. With ``control.realtime_priority`` the event loop's thread runs ``SCHED_FIFO`` and preempts
+the mapper thread the moment a tick is due (companion/realtime.py). SIGTERM or SIGINT ends every
+task, saves the map and exits within about two seconds.
 """
 
 from __future__ import annotations
@@ -685,7 +687,8 @@ class Daemon:
         if reason:
             log.warning("control loop at normal priority: %s; a busy mapper can delay control ticks", reason)
         else:
-            log.info("control loop thread at SCHED_FIFO priority %d (mapper and I/O threads at normal priority)", priority)
+            log.info("control loop thread at SCHED_FIFO priority %d, I/O threads at %d, mapper at normal priority",
+                     priority, max(1, priority - 1))
         return before
 
     async def _shutdown(self) -> None:
