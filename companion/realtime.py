@@ -97,8 +97,8 @@ def below(priority: int) -> None:
 
 
 def normal_scheduling() -> None:
-    """Put the calling thread under normal scheduling (``SCHED_OTHER``); for threads started by a
-    ``SCHED_FIFO`` thread, which would otherwise inherit its policy. Lowering needs no privilege."""
+    """Put the calling thread under normal scheduling (``SCHED_OTHER``): :func:`below`'s fallback,
+    and for a thread that was given a real-time policy some other way. Lowering needs no privilege."""
     if not supported():
         return
     if current() == Scheduling(os.SCHED_OTHER, 0):
