@@ -101,8 +101,6 @@ def normal_scheduling() -> None:
     and for a thread that was given a real-time policy some other way. Lowering needs no privilege."""
     if not supported():
         return
-    if current() == Scheduling(os.SCHED_OTHER, 0):
-        return
     try:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except OSError:
