@@ -293,22 +293,37 @@ def test_progress_is_plain_lines_when_stderr_is_not_a_terminal(tmp_path):
 
 
 # ---- end to end --------------------------------------------------------------------------------
+#
+# Two demos, as a user runs them:
+# * the closed loop (the issue's criteria): inverse depth, 3 laps, the law obeyed;
+# * the same path for both parameterisations (the issue's comparison): `--no-avoid`, 2 laps, so
+#   that the two maps differ by the parameterisation alone. In the closed loop each run flies where
+#   its own map sends it, and the climb itself shrinks what inverse depth is for (docs/demo.md,
+#   "Inverse depth against Cartesian").
 
-E2E_LAPS, E2E_SPEEDUP, E2E_TIMEOUT_S = 3, 4, 400
+CLOSED_LOOP_LAPS, SAME_PATH_LAPS, E2E_SPEEDUP, E2E_TIMEOUT_S = 3, 2, 4, 300
+
+
+def _run_demo(out, *options) -> SimpleNamespace:
+    argv = [sys.executable, "-m", "companion.cli", "demo", "--speedup", str(E2E_SPEEDUP), "--output", str(out), *options]
+    t0 = time.monotonic()
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=E2E_TIMEOUT_S)
+    wall = time.monotonic() - t0
+    metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else None
+    print(f"\n{' '.join(argv[3:])}: exit {proc.returncode}, {wall:.0f} s wall")
+    print(proc.stderr[-3000:])
+    return SimpleNamespace(out=out, proc=proc, metrics=metrics, wall=wall)
 
 
 @pytest.fixture(scope="module")
-def demo_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("demo")
-    t0 = time.monotonic()
-    proc = subprocess.run([sys.executable, "-m", "companion.cli", "demo", "--laps", str(E2E_LAPS),
-                           "--speedup", str(E2E_SPEEDUP), "--output", str(out)],
-                          capture_output=True, text=True, timeout=E2E_TIMEOUT_S)
-    wall = time.monotonic() - t0
-    metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else None
-    print(f"\ncompanion demo --laps {E2E_LAPS} --speedup {E2E_SPEEDUP}: exit {proc.returncode}, {wall:.0f} s wall")
-    print(proc.stderr[-3000:])
-    return SimpleNamespace(out=out, proc=proc, metrics=metrics, wall=wall)
+def closed_loop_run(tmp_path_factory):
+    return _run_demo(tmp_path_factory.mktemp("closed_loop"), "--laps", str(CLOSED_LOOP_LAPS),
+                     "--parameterisation", "inverse_depth")
+
+
+@pytest.fixture(scope="module")
+def same_path_run(tmp_path_factory):
+    return _run_demo(tmp_path_factory.mktemp("same_path"), "--laps", str(SAME_PATH_LAPS), "--no-avoid")
 
 
 def _figures(m):
@@ -321,17 +336,17 @@ def _figures(m):
               f"frames {run['frames_mapped']}/{run['frames']} mapped ({run['frames_dropped']} dropped)")
 
 
-@pytest.mark.slow
-def test_demo_flies_both_parameterisations_and_writes_the_report(demo_run):
-    """The plumbing: both runs complete, the service stops cleanly with its map saved, the
-    report holds the issue's keys and readable PNGs."""
-    assert demo_run.proc.returncode == 0, demo_run.proc.stderr[-2000:]
-    m = demo_run.metrics
+def _check_report(demo, parameterisations, laps):
+    """The plumbing of one demo: every run completes, the service stops cleanly with its map
+    saved, the report holds the issue's keys and readable PNGs."""
+    assert demo.proc.returncode == 0, demo.proc.stderr[-2000:]
+    m = demo.metrics
     _figures(m)
     assert isinstance(m["clearance_m"], float) and isinstance(m["obstacle_textured_height_m"], float)
-    for p in ("inverse_depth", "cartesian"):
+    assert sorted(m["runs"]) == sorted(parameterisations)
+    for p in parameterisations:
         run = m["runs"][p]
-        assert run["complete"] and len(run["laps"]) == E2E_LAPS
+        assert run["complete"] and len(run["laps"]) == laps
         for lap in run["laps"]:
             assert isinstance(lap["min_clearance_m"], float) and isinstance(lap["mapped_obstacle_height_m"], float)
         assert isinstance(run["map_rmse_m"], float)
@@ -342,45 +357,55 @@ def test_demo_flies_both_parameterisations_and_writes_the_report(demo_run):
         # demo warns above 5 %, docs/demo.md "Speed").
         assert run["frames_mapped"] >= 0.75 * run["frames"]
         assert run["ground_station"]["counts"]["bad_tiles"] == 0
-        names = [f"map_{p}.png"] + [f"profile_{p}_lap{k}.png" for k in range(1, E2E_LAPS + 1)]
+        names = [f"map_{p}.png"] + [f"profile_{p}_lap{k}.png" for k in range(1, laps + 1)]
         for name in names + ["comparison.png"]:
-            img = cv2.imread(str(demo_run.out / name))
+            img = cv2.imread(str(demo.out / name))
             assert img is not None and img.shape[0] > 300 and img.shape[1] > 300, name
-        assert (demo_run.out / "runs" / p / "trajectory.csv").exists()
+        assert (demo.out / "runs" / p / "trajectory.csv").exists()
 
 
 @pytest.mark.slow
-def test_demo_meets_the_issue_criteria(demo_run):
+def test_demo_flies_both_parameterisations_and_writes_the_report(same_path_run):
+    _check_report(same_path_run, ("inverse_depth", "cartesian"), SAME_PATH_LAPS)
+    # --no-avoid: the law is evaluated and published, never obeyed; the vehicle holds its altitude
+    for run in same_path_run.metrics["runs"].values():
+        assert max(lap["max_alt_m"] for lap in run["laps"]) < 20.0
+
+
+@pytest.mark.slow
+def test_demo_closed_loop_run_writes_its_report(closed_loop_run):
+    _check_report(closed_loop_run, ("inverse_depth",), CLOSED_LOOP_LAPS)
+
+
+@pytest.mark.slow
+def test_demo_meets_the_issue_criteria(closed_loop_run):
     """The issue: once the building is mapped (in time for the law to climb), clearance stays at
     or above 0.8 of the configured clearance; the mapped building height (last lap) is within 20 %
     of its textured height. Three laps, as the paper's goal (90 % of the height by lap 3): after two
-    the height sat at 7.2-7.7 m against the 7.2 m bound in session 5's runs.
-
-    The issue also asks that the Cartesian run map the building worse. One closed-loop flight of
-    each cannot show it: the two flights differ in more than the parameterisation (each flies
-    where its own map sends it, at x4 on a shared machine). In session 5's six runs the
-    Cartesian run's mean height error was the smaller by 0.4, 0.6 and 0.3 m in three (the last
-    two three-lap runs), which the 0.25 m tie band of session 4 did not absorb. So the comparison is
-    printed and kept in the metrics and the comparison figure, not asserted here; the paper's
-    claim is asserted on identical inputs by
-    tests/test_mapper_sim.py::test_inverse_depth_converges_faster_than_cartesian_where_the_prior_is_wrong
-    (Monte Carlo over rendered runs). docs/demo.md says so."""
-    m = demo_run.metrics
-    assert m is not None, demo_run.proc.stderr[-2000:]
+    the height sat at 7.2-7.7 m against the 7.2 m bound in session 5's runs."""
+    m = closed_loop_run.metrics
+    assert m is not None, closed_loop_run.proc.stderr[-2000:]
     _figures(m)
     h_c, textured = m["clearance_m"], m["obstacle_textured_height_m"]
-    inv, cart = m["runs"]["inverse_depth"], m["runs"]["cartesian"]
+    inv = m["runs"]["inverse_depth"]
     judged = [lap for lap in inv["laps"] if lap["mapped_in_time"]]
     assert judged, "the building was never in the map early enough for the law to act"
     for lap in judged:
         assert lap["min_clearance_m"] >= 0.8 * h_c, f"lap {lap['lap']}: clearance {lap['min_clearance_m']} m"
     height = inv["laps"][-1]["mapped_obstacle_height_m"]
     assert abs(height - textured) <= 0.2 * textured, f"mapped {height} m vs textured {textured} m"
-    # Worse = a larger height error averaged over the laps (the paper compares them lap by lap):
-    # a lap with nothing mapped counts the whole textured height.
-    def mean_error(run):
-        return np.mean([textured if lap["mapped_obstacle_height_m"] is None
-                        else abs(lap["mapped_obstacle_height_m"] - textured) for lap in run["laps"]])
-    # Reported, not asserted (the docstring says why).
-    print(f"  mean height error over the laps: inverse depth {mean_error(inv):.2f} m, "
-          f"Cartesian {mean_error(cart):.2f} m")
+
+
+@pytest.mark.slow
+def test_cartesian_maps_the_building_worse_on_the_same_path(same_path_run):
+    """The issue: the Cartesian run maps the building worse. Worse = a larger height error averaged
+    over the laps (report.mean_height_error; the paper compares them lap by lap), both runs flying
+    the same path at the nominal altitude. Session 6, six such demos (2 or 3 laps): inverse depth
+    1.34-2.16 m, Cartesian 3.21-4.98 m; the smallest gap 1.24 m."""
+    m = same_path_run.metrics
+    assert m is not None, same_path_run.proc.stderr[-2000:]
+    textured = m["obstacle_textured_height_m"]
+    inv, cart = m["runs"]["inverse_depth"], m["runs"]["cartesian"]
+    err_inv, err_cart = report.mean_height_error(inv["laps"], textured), report.mean_height_error(cart["laps"], textured)
+    print(f"  mean height error over the laps, same path: inverse depth {err_inv:.2f} m, Cartesian {err_cart:.2f} m")
+    assert err_cart > err_inv
