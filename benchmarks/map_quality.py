@@ -52,9 +52,9 @@ from companion.mapper import Mapper  # noqa: E402
 from companion.mapper.features import HarrisDetector, as_gray  # noqa: E402
 from companion.messages import NavState, TerrainPoints  # noqa: E402
 from companion.navigation import NavAssembler  # noqa: E402
+from companion.quality import engine  # noqa: E402
 from companion.terrain.grid import TerrainGrid  # noqa: E402
 from drivers.sim.ardupilot import GUIDED, ArduPilotCopter  # noqa: E402
-from drivers.sim.mavlink_endpoint import StreamSchedule  # noqa: E402
 from drivers.sim.renderer import Renderer, RenderOptions  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
 
@@ -153,33 +153,9 @@ class RunResult:
     oracle: TerrainGrid | None = None  # the same points moved to where navigation error alone puts them
 
 
-class _Link:
-    """What ArduPilotCopter.handle needs to know about the link a message came on."""
-
-    def __init__(self) -> None:
-        self.name = "benchmark"
-        self.schedule = StreamSchedule()
-
-
-def _from_gcs(msg):
-    """A constructed message with a sender, as the vehicle would parse it from the wire."""
-    enc = mav.MAVLink(None, srcSystem=255, srcComponent=191)
-    return mav.MAVLink(None).parse_buffer(msg.pack(enc))[0]
-
-
-def _command(ap: ArduPilotCopter, link: _Link, command: int, *params: float) -> int:
-    p = list(params) + [0.0] * (7 - len(params))
-    ap.outbox.clear()
-    ap.handle(_from_gcs(mav.MAVLink_command_long_message(1, 1, command, 0, *p)), link)
-    acks = [m for _, m in ap.outbox if m.get_type() == "COMMAND_ACK"]
-    return acks[-1].result if acks else -1
-
-
-def _velocity_setpoint(v_ned: np.ndarray, yaw: float | None):
-    mask = 3527 if yaw is None else 3527 & ~1024
-    return _from_gcs(mav.MAVLink_set_position_target_local_ned_message(
-        0, 1, 1, mav.MAV_FRAME_LOCAL_NED, mask, 0, 0, 0, float(v_ned[0]), float(v_ned[1]), float(v_ned[2]),
-        0, 0, 0, 0.0 if yaw is None else float(yaw), 0))
+_Link = engine._Link
+_command = engine.command
+_velocity_setpoint = engine.velocity_setpoint
 
 
 class _Recorder:

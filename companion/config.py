@@ -267,7 +267,18 @@ class SimConfig:
     nav_vel_sigma_mps: float = _f(0.1, "m/s", 0.0, 10.0, "injected navigation error: velocity sigma per axis")
     nav_tilt_sigma_deg: float = _f(0.5, "deg", 0.0, 30.0, "injected navigation error: roll/pitch sigma")
     nav_yaw_sigma_deg: float = _f(2.0, "deg", 0.0, 90.0, "injected navigation error: yaw sigma")
-    nav_att_tau_s: float = _f(10.0, "s", 0.01, 3600.0, "correlation time of the attitude error")
+    nav_att_tau_s: float = _f(10.0, "s", 0.01, 3600.0, "harsh model: correlation time of the attitude error")
+    nav_error_model: Literal["ekf", "harsh"] = _f("ekf", doc="ekf = a slow error (position and attitude wandering over tens "
+                                                "of seconds) plus a small white part, as an autopilot's EKF; harsh = one "
+                                                "faster process per component, no white part (docs/sim.md)")
+    nav_pos_tau_h_s: float = _f(60.0, "s", 0.1, 36000.0, "ekf model: integral correlation time of the horizontal position error")
+    nav_pos_tau_v_s: float = _f(60.0, "s", 0.1, 36000.0, "ekf model: integral correlation time of the vertical position error")
+    nav_att_tau_ekf_s: float = _f(30.0, "s", 0.1, 36000.0, "ekf model: integral correlation time of the attitude error")
+    nav_pos_white_m: float = _f(0.02, "m", 0.0, 10.0, "ekf model: white part of the position error per axis")
+    nav_vel_white_mps: float = _f(0.02, "m/s", 0.0, 10.0, "ekf model: white part of the velocity error per axis (the slow "
+                                  "part is the rate of the slow position error)")
+    nav_tilt_white_deg: float = _f(0.02, "deg", 0.0, 10.0, "ekf model: white part of the roll/pitch error")
+    nav_yaw_white_deg: float = _f(0.05, "deg", 0.0, 10.0, "ekf model: white part of the yaw error")
     gps_noise_m: float = _f(0.2, "m", 0.0, 100.0, "white noise of the simulated GPS fix about the navigation estimate")
     gps_vel_noise_mps: float = _f(0.05, "m/s", 0.0, 10.0, "white noise of the simulated GPS velocity")
 

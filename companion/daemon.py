@@ -38,12 +38,12 @@ from typing import Any
 import numpy as np
 
 from companion import realtime
-from companion.avoidance import AvoidanceCommand, PullUpLaw
+from companion.avoidance import AvoidanceCommand
 from companion.clock import Clock
 from companion.config import CompanionConfig, ConfigError, load_config
 from companion.config import replace as replace_config
+from companion.control import Controller
 from companion.geometry import camera_from_config
-from companion.guidance import WaypointGuidance
 from companion.mapper import Mapper
 from companion.mapper_process import MapperProcess
 from companion.messages import Frame, NavState
@@ -162,11 +162,7 @@ class Daemon:
                 cfg.mapper, self.camera_model, self.mount, depth_prior=self._depth_prior,
                 default_ground_alt_m=cfg.terrain.default_ground_alt_m, border_px=cfg.camera.border_px,
             )
-        self.law = PullUpLaw(cfg.avoidance)
-        self.guidance = (
-            WaypointGuidance(cfg.control.waypoints_ne_m, cfg.control.cruise_speed_mps)
-            if len(cfg.control.waypoints_ne_m) >= 2 else None
-        )
+        self.controller = Controller(cfg)  # the law and the route (companion/control.py)
         self.notifier = SystemdNotifier()
         self.record_dir = record_dir
         self.frames = FrameQueue(maxlen=2)
@@ -448,26 +444,17 @@ class Daemon:
             self.command_state = f"navigation stale ({age:.2f} s old)"
             return False
         with self.grid_lock:
-            cmd = self.law.command(nav.position_ned_m, nav.velocity_ned_mps, self.grid)
+            decision = self.controller.decide(nav, self.grid)
             self._updates_in_setpoint = len(self._map_updates)  # the updates this law has seen
+        cmd, velocity = decision.command, decision.velocity_ned_mps
         self.last_command = cmd
-        yaw = None
-        if self.guidance is not None:
-            out = self.guidance.update(nav.position_ned_m[:2])
-            horizontal, yaw = out.velocity_ne_mps, out.yaw_rad
-            self.lap = out.lap
-        else:
-            horizontal = nav.velocity_ned_mps[:2]
-        climb = cmd.climb_rate_mps
-        if not self.cfg.avoidance.enabled:  # nominal altitude only (demo --no-avoid); the law is still published
-            climb = min(max(cmd.nominal_climb_mps, -self.cfg.avoidance.max_descent_mps), self.cfg.avoidance.max_climb_mps)
-        velocity = np.array([horizontal[0], horizontal[1], -climb])
-        if nav.altitude_m < self.cfg.control.min_alt_m:
+        self.lap = decision.lap
+        if not decision.send:
             # Takeoff and landing belong to the autopilot: a velocity setpoint would cancel them.
             sent = False
             self.command_state = f"advisory (below control.min_alt_m = {self.cfg.control.min_alt_m:g} m)"
         else:
-            sent = self.link.send_setpoint(velocity, yaw_rad=yaw)
+            sent = self.link.send_setpoint(velocity, yaw_rad=decision.yaw_rad)
             record = self.link.last_setpoint
             self.command_state = "commanding" if sent else f"advisory ({record.reason if record else 'not sent'})"
         self._setpoint_t = self.clock.now()  # frame-to-setpoint ends here; the status text and publishing follow

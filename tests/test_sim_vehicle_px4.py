@@ -81,9 +81,9 @@ def test_offboard_is_refused_without_a_setpoint_stream_accepted_with_one_and_los
 
 
 def test_reported_covariance_is_honest_nees_within_chi_square_bounds():
-    # fast-decorrelating errors (w = sigma_v / sigma_p = 2 /s horizontally, 1.25 /s vertically,
-    # attitude tau 0.5 s) so that a 100 s run holds ~50 independent samples
-    with px4("--speedup", "30", "--origin-delay", "0.5", "--set", "nav_pos_sigma_h_m=0.25", "--set", "nav_pos_sigma_v_m=0.4",
+    # the harsh model's fast-decorrelating errors (w = sigma_v / sigma_p = 2 /s horizontally, 1.25 /s
+    # vertically, attitude tau 0.5 s) so that a 100 s run holds ~50 independent samples
+    with px4("--speedup", "30", "--origin-delay", "0.5", "--set", "nav_error_model=harsh", "--set", "nav_pos_sigma_h_m=0.25", "--set", "nav_pos_sigma_v_m=0.4",
              "--set", "nav_vel_sigma_mps=0.5", "--set", "nav_att_tau_s=0.5", "--set", "gust_sigma_mps=1.0") as sim:
         client = connect(sim)
         # quiet the default streams, keep ODOMETRY and the truth at the same 10 Hz (same physics step)

@@ -57,14 +57,22 @@ ATT = slice(6, 9)
 class NavErrorSpec:
     """Stationary sigmas of the 9 error components and the attitude correlation times.
 
-    sigma: (9,) [pos N, E, D (m), vel N, E, D (m/s), att N, E, D (rad)].
+    sigma: (9,) [pos N, E, D (m), vel N, E, D (m/s), att N, E, D (rad)]: the total sigma of each
+    component, slow and fast parts together (what the vehicle reports).
     att_tau_s: (3,) seconds, the integral correlation time of each attitude axis (its process
-    has ``w = 2 / tau``). Position/velocity time constants follow from the sigmas
-    (``sigma_p / sigma_v`` per axis).
+    has ``w = 2 / tau``).
+    pos_tau_s: (3,) seconds, the integral correlation time of each position axis (``w = 2 / tau``);
+    None (the ``harsh`` model) = from the sigmas, ``w = sigma_v / sigma_p``.
+    white: (9,) sigma of the fast part of each component, white from one navigation step to the
+    next (the ``ekf`` model; zeros in the ``harsh`` one). The slow part carries the rest of the
+    variance: ``sigma_slow^2 = sigma^2 - white^2``; for velocity the slow part is the rate of the
+    slow position error (``w sigma_p_slow``) and the white part makes up the total.
     """
 
     sigma: tuple[float, ...]
     att_tau_s: tuple[float, float, float] = (10.0, 10.0, 10.0)
+    pos_tau_s: tuple[float, float, float] | None = None
+    white: tuple[float, ...] = (0.0,) * 9
 
     def __post_init__(self) -> None:
         if len(self.sigma) != 9 or len(self.att_tau_s) != 3:
@@ -75,6 +83,11 @@ class NavErrorSpec:
         for i, t in enumerate(self.att_tau_s):
             if not (math.isfinite(t) and t > 0):
                 raise ValueError(f"NavErrorSpec.att_tau_s[{i}] must be finite and > 0, got {t!r}")
+        if len(self.white) != 9 or any(not (math.isfinite(w) and 0 <= w <= s) for w, s in zip(self.white, self.sigma)):
+            raise ValueError(f"NavErrorSpec.white must be 9 values within 0..sigma, got {self.white!r}")
+        if self.pos_tau_s is not None and (len(self.pos_tau_s) != 3 or
+                                           any(not (math.isfinite(t) and t > 0) for t in self.pos_tau_s)):
+            raise ValueError(f"NavErrorSpec.pos_tau_s must be 3 finite times > 0, got {self.pos_tau_s!r}")
         for i in range(3):
             if self.sigma[3 + i] > 0 and self.sigma[i] == 0:
                 raise ValueError(f"NavErrorSpec: velocity sigma[{3 + i}] > 0 needs a position sigma[{i}] > 0 "
@@ -85,7 +98,20 @@ class NavErrorSpec:
         """From a :class:`companion.config.SimConfig`."""
         h, v, vel = sim.nav_pos_sigma_h_m, sim.nav_pos_sigma_v_m, sim.nav_vel_sigma_mps
         tilt, yaw = math.radians(sim.nav_tilt_sigma_deg), math.radians(sim.nav_yaw_sigma_deg)
-        return cls(sigma=(h, h, v, vel, vel, vel, tilt, tilt, yaw), att_tau_s=(sim.nav_att_tau_s,) * 3)
+        sigma = (h, h, v, vel, vel, vel, tilt, tilt, yaw)
+        if getattr(sim, "nav_error_model", "harsh") == "harsh":
+            return cls(sigma=sigma, att_tau_s=(sim.nav_att_tau_s,) * 3)
+        tau_p = (sim.nav_pos_tau_h_s, sim.nav_pos_tau_h_s, sim.nav_pos_tau_v_s)
+        wp, wv = sim.nav_pos_white_m, sim.nav_vel_white_mps
+        wt, wy = math.radians(sim.nav_tilt_white_deg), math.radians(sim.nav_yaw_white_deg)
+        w_pos = tuple(min(wp, s) for s in (h, h, v))
+        # velocity: the rate of the slow position error plus its own white part (nav_vel_sigma_mps is
+        # the harsh model's; here the velocity sigma follows from the position's and is what is reported)
+        v_slow = tuple((2.0 / t) * math.sqrt(s * s - w * w) for s, w, t in zip((h, h, v), w_pos, tau_p))
+        w_vel = tuple(wv if s > 0 else 0.0 for s in (h, h, v))  # no position error: no velocity error either
+        sigma = (h, h, v, *(math.hypot(vs, w) for vs, w in zip(v_slow, w_vel)), tilt, tilt, yaw)
+        white = (*w_pos, *w_vel, min(wt, tilt), min(wt, tilt), min(wy, yaw))
+        return cls(sigma=sigma, att_tau_s=(sim.nav_att_tau_ekf_s,) * 3, pos_tau_s=tau_p, white=white)
 
     @property
     def covariance(self) -> np.ndarray:
@@ -93,9 +119,22 @@ class NavErrorSpec:
         return np.diag(np.square(self.sigma))
 
     @property
+    def slow_sigma(self) -> np.ndarray:
+        """(9,) sigma of the slow part of each component: ``sqrt(sigma^2 - white^2)``; for velocity,
+        with ``pos_tau_s``, the rate of the slow position error ``w sigma_p_slow``."""
+        s, w = np.asarray(self.sigma, float), np.asarray(self.white, float)
+        slow = np.where(w > 0, np.sqrt(np.maximum(s * s - w * w, 0.0)), s)
+        if self.pos_tau_s is not None:
+            slow[VEL] = self.pos_vel_omega * slow[POS]
+        return slow
+
+    @property
     def pos_vel_omega(self) -> np.ndarray:
-        """(3,) natural frequency w = sigma_v / sigma_p of each axis' position/velocity process (0 = frozen)."""
+        """(3,) natural frequency of each axis' position/velocity process (0 = frozen): ``2 / tau``
+        with ``pos_tau_s``, else ``sigma_v / sigma_p``."""
         s = np.asarray(self.sigma)
+        if self.pos_tau_s is not None:
+            return np.where(s[POS] > 0, 2.0 / np.asarray(self.pos_tau_s, float), 0.0)
         return np.divide(s[VEL], s[POS], out=np.zeros(3), where=s[POS] > 0)
 
     @property
@@ -138,14 +177,17 @@ class GaussMarkovNavError:
     def __init__(self, spec: NavErrorSpec, rng: np.random.Generator):
         self.spec = spec
         self.rng = rng
-        self._sigma = np.asarray(spec.sigma, float)
+        self._sigma = spec.slow_sigma  # of the slow processes
+        self._white = np.asarray(spec.white, float)
+        self._has_white = bool(np.any(self._white > 0))
         self._tau = np.asarray(spec.att_tau_s, float)
         self._omega = spec.pos_vel_omega
         self._att_omega = spec.attitude_omega
         self._att_rate_sigma = self._att_omega * self._sigma[ATT]
         self._cache: tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
-        self.e = self._sigma * rng.standard_normal(9)
+        self.slow = self._sigma * rng.standard_normal(9)
         self.attitude_rate_error = self._att_rate_sigma * rng.standard_normal(3)
+        self.e = self.slow + (self._white * rng.standard_normal(9) if self._has_white else 0.0)
 
     def _discrete(self, dt: float):
         """(F, chol(Q)) of position/velocity and of attitude/attitude rate, each (3, 2, 2), for
@@ -161,12 +203,15 @@ class GaussMarkovNavError:
             raise ValueError(f"GaussMarkovNavError.step needs dt > 0, got {dt!r}")
         F, L, Fa, La = self._discrete(dt)
         w = self.rng.standard_normal(12)
-        pv = np.stack([self.e[POS], self.e[VEL]], axis=-1)  # (3, 2): per axis [e_p, e_v]
+        slow = self.slow
+        pv = np.stack([slow[POS], slow[VEL]], axis=-1)  # (3, 2): per axis [e_p, e_v]
         pv = (F @ pv[..., None])[..., 0] + (L @ w[:6].reshape(3, 2)[..., None])[..., 0]
-        self.e[POS], self.e[VEL] = pv[:, 0], pv[:, 1]
-        ar = np.stack([self.e[ATT], self.attitude_rate_error], axis=-1)  # (3, 2): per axis [e_att, rate]
+        slow[POS], slow[VEL] = pv[:, 0], pv[:, 1]
+        ar = np.stack([slow[ATT], self.attitude_rate_error], axis=-1)  # (3, 2): per axis [e_att, rate]
         ar = (Fa @ ar[..., None])[..., 0] + (La @ w[6:].reshape(3, 2)[..., None])[..., 0]
-        self.e[ATT], self.attitude_rate_error = ar[:, 0], ar[:, 1]
+        slow[ATT], self.attitude_rate_error = ar[:, 0], ar[:, 1]
+        # the fast part: white from one step to the next (the ``harsh`` model has none: e is the slow part)
+        self.e = slow + self._white * self.rng.standard_normal(9) if self._has_white else slow.copy()
 
     @property
     def position_error_m(self) -> np.ndarray:

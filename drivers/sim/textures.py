@@ -33,6 +33,10 @@ def synthesize(spec) -> np.ndarray:
         img = leaves(shape, spec.texel_m, rng)
     else:
         raise ValueError(f"unknown texture kind {spec.kind!r}")
+    contrast = float(getattr(spec, "contrast", 1.0))
+    if contrast != 1.0:  # fainter texture: the spread about the mean grey shrinks, the mean stays
+        mean = float(img.mean())
+        img = cv2.convertScaleAbs(img, alpha=contrast, beta=(1.0 - contrast) * mean)
     if spec.shade != 1.0:
         img = cv2.convertScaleAbs(img, alpha=float(spec.shade))
     return img

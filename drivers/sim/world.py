@@ -32,7 +32,7 @@ import numpy as np
 import yaml
 
 import drivers
-from companion.config import ConfigError, _build, _f
+from companion.config import CompanionConfig, ConfigError, _build, _f
 
 SCENARIO_DIR = Path(drivers.__file__).resolve().parents[1] / "config" / "scenarios"
 
@@ -80,6 +80,8 @@ class BoxSpec:
     floor_height_m: float = _f(3.0, "m", 0.5, 100.0)
     bay_width_m: float = _f(2.5, "m", 0.2, 100.0, "horizontal spacing of windows")
     sill_m: float = _f(0.9, "m", 0.0, 100.0, "window bottom above each floor")
+    contrast: float = _f(1.0, "", 0.02, 1.0, "texture contrast of walls and roof about their mean grey (1 = as drawn; "
+                                              "lower = fainter, fewer Harris corners)")
 
 
 @dataclass(frozen=True, slots=True)
@@ -92,6 +94,7 @@ class TreeLineSpec:
     depth_m: float = _f(6.0, "m", 0.1, 1000.0, "thickness across the line")
     height_m: float = _f(6.0, "m", 0.1, 1000.0)
     texel_m: float = _f(0.04, "m", 0.002, 1.0)
+    contrast: float = _f(1.0, "", 0.02, 1.0, "leaf texture contrast about its mean grey (1 = as drawn; lower = fainter)")
 
 
 @dataclass(frozen=True, slots=True)
@@ -150,6 +153,7 @@ class TextureSpec:
     shade: brightness factor from the sun (Lambert + ambient), baked into the texels.
     windows: (K, 4) int texel rectangles [col0, row0, col1, row1) drawn dark on the wall.
     wrap: the texture tiles the plane (ground).
+    contrast: the texels' spread about their mean grey is scaled by this (1 = as drawn).
     """
 
     kind: str
@@ -160,6 +164,7 @@ class TextureSpec:
     shade: float = 1.0
     windows: np.ndarray = None  # type: ignore[assignment]
     wrap: bool = False
+    contrast: float = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -316,9 +321,11 @@ def window_rectangles(wall_length_m: float, spec: BoxSpec, textured_height_m: fl
 class World:
     """A validated scenario with exact geometry and ground truth. Build with :meth:`load`."""
 
-    def __init__(self, spec: ScenarioSpec, source: str = "<dict>"):
+    def __init__(self, spec: ScenarioSpec, source: str = "<dict>", service: dict | None = None):
         self.spec = spec
         self.source = source
+        # The service settings the scenario carries (a partial companion configuration, validated).
+        self.service: dict = dict(service or {})
         self._check(spec, source)
         sun_az, sun_el = math.radians(spec.sun_azimuth_deg), math.radians(spec.sun_elevation_deg)
         # Unit vector from the scene towards the sun (NED).
@@ -370,12 +377,17 @@ class World:
             data = {}
         if not isinstance(data, dict):
             raise ConfigError(f"{where}: a scenario must be a mapping of keys")
+        data = dict(data)
+        service = data.pop("service", None) or {}
+        if not isinstance(service, dict):
+            raise ConfigError(f"{where}: 'service' must be a mapping of configuration sections, got {type(service).__name__}")
+        _build(CompanionConfig, service, "service", where)  # validated like `companion run`'s configuration
         spec = _build(ScenarioSpec, data, "", where)
         if seed is not None:
             if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**31:
                 raise ConfigError(f"{where}: seed override must be an integer in [0, 2^31), got {seed!r}")
             spec = dataclasses.replace(spec, seed=seed)
-        return cls(spec, where)
+        return cls(spec, where, service)
 
     @staticmethod
     def _check(spec: ScenarioSpec, where: str) -> None:
@@ -469,7 +481,7 @@ class World:
         return int(np.random.SeedSequence([self.spec.seed, len(self._faces), *parts]).generate_state(1)[0])
 
     def _add_prism_walls(self, name: str, base: np.ndarray, height: float, texel: float, kind: str,
-                         window_layout=None) -> None:
+                         window_layout=None, contrast: float = 1.0) -> None:
         """Vertical walls over a convex footprint ``base`` (K, 2) from altitude 0 to ``height``."""
         centre = base.mean(axis=0)
         for k in range(len(base)):
@@ -491,18 +503,19 @@ class World:
             if windows is not None and len(windows):
                 self._windows.append((name, _texel_rect_corners(top_left, axis_u, axis_v, windows)))
             tex = TextureSpec(kind, cols, rows, texel, self._seed(k), _lambert(outward, self.sun_from, self.spec.ambient),
-                              windows)
+                              windows, contrast=contrast)
             verts = np.array([_ned(p, height), _ned(q, height), _ned(q, 0.0), _ned(p, 0.0)])
             self._faces.append(_face(name, verts, outward, top_left + 0.5 * (axis_u + axis_v), axis_u, axis_v, tex))
 
-    def _add_roof(self, name: str, b: _Box, kind: str, texel: float) -> None:
+    def _add_roof(self, name: str, b: _Box, kind: str, texel: float, contrast: float = 1.0) -> None:
         corners = b.footprint()
         length, width = 2 * b.half
         cols, rows = max(2, round(length / texel)), max(2, round(width / texel))
         o = _ned(corners[0], b.height)
         axis_u = _ned(b.u * length / cols, 0.0)
         axis_v = _ned(b.v * width / rows, 0.0)
-        tex = TextureSpec(kind, cols, rows, texel, self._seed(99), _lambert(UP, self.sun_from, self.spec.ambient))
+        tex = TextureSpec(kind, cols, rows, texel, self._seed(99), _lambert(UP, self.sun_from, self.spec.ambient),
+                          contrast=contrast)
         self._faces.append(_face(name, _ned(corners, b.height), UP, o + 0.5 * (axis_u + axis_v), axis_u, axis_v, tex))
 
     def _add_box(self, spec: BoxSpec) -> tuple[_Box, float]:
@@ -514,8 +527,8 @@ class World:
         if spec.wall_texture == "windows":
             def layout(length, cols, rows):
                 return window_rectangles(length, spec, textured, spec.height_m, cols, rows)
-        self._add_prism_walls(spec.name, b.footprint(), spec.height_m, spec.texel_m, spec.wall_texture, layout)
-        self._add_roof(spec.name, b, spec.roof_texture, spec.texel_m)
+        self._add_prism_walls(spec.name, b.footprint(), spec.height_m, spec.texel_m, spec.wall_texture, layout, spec.contrast)
+        self._add_roof(spec.name, b, spec.roof_texture, spec.texel_m, spec.contrast)
         has_windows = any(owner == spec.name for owner, _ in self._windows)
         if spec.roof_texture != "plain":
             trackable = spec.height_m
@@ -533,8 +546,8 @@ class World:
         b = _Box(spec.name, "trees", (a + e) / 2, math.atan2(d[1], d[0]), float(np.linalg.norm(d)), spec.depth_m,
                  spec.height_m, spec.height_m)
         self._boxes.append(b)
-        self._add_prism_walls(spec.name, b.footprint(), spec.height_m, spec.texel_m, "leaves")
-        self._add_roof(spec.name, b, "leaves", spec.texel_m)
+        self._add_prism_walls(spec.name, b.footprint(), spec.height_m, spec.texel_m, "leaves", contrast=spec.contrast)
+        self._add_roof(spec.name, b, "leaves", spec.texel_m, spec.contrast)
         return b
 
     def _add_ridge(self, spec: RidgeSpec) -> _Ridge:

@@ -1,0 +1,321 @@
+"""The service's closed loop in one process, in simulated time: deterministic and fast.
+
+What ``companion demo`` runs as three processes over MAVLink and Zenoh, stepped here in lockstep:
+
+* vehicle: the simulator's ArduPilot Copter model (:class:`drivers.sim.ardupilot.ArduPilotCopter`:
+  point-mass multirotor, its position controller, the injected navigation error, the GPS receiver),
+  armed and taken off in GUIDED as the demo's pilot does;
+* navigation: :class:`companion.navigation.NavAssembler` fed the very MAVLink messages the vehicle
+  builds (LOCAL_POSITION_NED, ATTITUDE_QUATERNION at the control and frame times; GPS_RAW_INT at
+  5 Hz; EKF_STATUS_REPORT at 2 Hz), so the mapper gets the estimate and covariance the service has;
+* camera: the renderer at the TRUE camera pose (what the synthetic camera does from SIM_STATE),
+  at ``camera.rate_hz`` with the simulator's sensor noise;
+* mapper and map: :class:`Mapper` with the grid's ray cast as its depth prior, converged points
+  into the :class:`TerrainGrid` (as the daemon's mapper worker);
+* control: :class:`companion.control.Controller`, the daemon's own decision, at ``control.rate_hz``;
+  its velocity setpoint goes to the vehicle as SET_POSITION_TARGET_LOCAL_NED.
+
+What differs from the processes: no transport latency (a map update reaches the next control
+step, ~50 ms, as in the daemon when it keeps up) and no dropped frames. Same inputs, same flight,
+bit for bit.
+
+The record (:class:`FlightRecord`) holds what the pilot's figures need (companion/quality/metrics.py).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mav
+
+from companion import report
+from companion.avoidance import margin_height
+from companion.config import CompanionConfig
+from companion.control import Controller
+from companion.geometry import camera_from_config
+from companion.mapper import Mapper
+from companion.mapper.features import HarrisDetector, as_gray
+from companion.messages import NavState
+from companion.navigation import NavAssembler
+from companion.terrain.grid import TerrainGrid
+
+GPS_MSG_RATE_HZ = 5.0      # GPS_RAW_INT as streamed to the service
+EKF_MSG_RATE_HZ = 2.0      # EKF_STATUS_REPORT
+HELD_SAMPLE_S = 0.5        # how often the map's hold on each obstacle is sampled (simulated s)
+SWATH_GRID = (12, 9)       # pixel rays per frame cast to find the ground the camera saw
+TAKEOFF_TIMEOUT_S = 120.0  # simulated seconds to reach the control altitude
+CRUISE_REACHED_M = 0.5     # the record starts when the vehicle first comes this close to the nominal altitude
+
+
+@dataclass
+class FlightRecord:
+    """What one flight produced (simulated seconds; local NED; altitudes up), from the first time the
+    vehicle reached its nominal altitude after take-off.
+
+    t_s (T,), truth_ne_m (T, 2), truth_alt_m (T,), truth_speed_mps (T,): the true state at every
+    control step after take-off; nav_alt_m (T,): the estimate the law used; per step the law's
+    output: climb_mps (T,) commanded, nominal_climb_mps (T,), engaged (T,) bool, limiting_ne_m (T, 2)
+    (NaN when none), limiting_law_height_m (T,) (the cell as the law took it: estimate + margin),
+    limiting_map_height_m (T,) (the cell's mapped estimate), lap (T,) the guidance's completed laps.
+    lap_ends: index into t_s of each lap's end; lap_maps: the map at each lap's end.
+    held: obstacle name -> (K, 2) [t, highest footprint cell as the law takes it], sampled every
+    ``HELD_SAMPLE_S``. swath_cells: (M, 2) int cell indices (floor(n / c), floor(e / c)) where a
+    camera ray met the ground or a structure. final_map: the map at the end.
+    """
+
+    scenario: str
+    seed: int
+    parameterisation: str
+    laps_requested: int
+    cfg: CompanionConfig
+    t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    truth_ne_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    truth_alt_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    truth_speed_mps: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    nav_alt_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    climb_mps: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    nominal_climb_mps: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    engaged: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    limiting_ne_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    limiting_law_height_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    limiting_map_height_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    lap: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    lap_ends: list[int] = field(default_factory=list)
+    lap_maps: list[report.MapRaster] = field(default_factory=list)
+    held: dict[str, np.ndarray] = field(default_factory=dict)
+    swath_cells: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    final_map: report.MapRaster = field(default_factory=report.MapRaster.empty)
+    frames: int = 0
+    points_converged: int = 0
+    sim_time_s: float = 0.0
+    wall_s: float = 0.0
+    complete: bool = False
+    problem: str = ""
+
+    @property
+    def realtime_factor(self) -> float:
+        return self.sim_time_s / self.wall_s if self.wall_s > 0 else math.nan
+
+
+class _Link:
+    """What ArduPilotCopter.handle needs to know about the link a message came on."""
+
+    def __init__(self) -> None:
+        from drivers.sim.mavlink_endpoint import StreamSchedule
+
+        self.name = "quality"
+        self.schedule = StreamSchedule()
+
+
+def _from_gcs(msg):
+    """A constructed message with a sender, as the vehicle parses it from the wire."""
+    enc = mav.MAVLink(None, srcSystem=255, srcComponent=191)
+    return mav.MAVLink(None).parse_buffer(msg.pack(enc))[0]
+
+
+def command(ap, link: _Link, cmd: int, *params: float) -> int:
+    """COMMAND_LONG to the simulated vehicle; the COMMAND_ACK result (-1 if none)."""
+    p = list(params) + [0.0] * (7 - len(params))
+    ap.outbox.clear()
+    ap.handle(_from_gcs(mav.MAVLink_command_long_message(1, 1, cmd, 0, *p)), link)
+    acks = [m for _, m in ap.outbox if m.get_type() == "COMMAND_ACK"]
+    return acks[-1].result if acks else -1
+
+
+def velocity_setpoint(v_ned: np.ndarray, yaw: float | None):
+    """SET_POSITION_TARGET_LOCAL_NED, velocity only (type_mask 3527), with the yaw when given."""
+    mask = 3527 if yaw is None else 3527 & ~1024
+    return _from_gcs(mav.MAVLink_set_position_target_local_ned_message(
+        0, 1, 1, mav.MAV_FRAME_LOCAL_NED, mask, 0, 0, 0, float(v_ned[0]), float(v_ned[1]), float(v_ned[2]),
+        0, 0, 0, 0.0 if yaw is None else float(yaw), 0))
+
+
+def footprint_cell_centres(polygon: np.ndarray, cell_m: float, margin_m: float) -> np.ndarray:
+    """(K, 2) centres of the grid cells within ``margin_m`` of the polygon (inside or near an edge)."""
+    lo = np.floor((polygon.min(axis=0) - margin_m) / cell_m)
+    hi = np.ceil((polygon.max(axis=0) + margin_m) / cell_m)
+    n = (np.arange(lo[0], hi[0]) + 0.5) * cell_m
+    e = (np.arange(lo[1], hi[1]) + 0.5) * cell_m
+    pts = np.stack(np.meshgrid(n, e, indexing="ij"), axis=-1).reshape(-1, 2)
+    near = report.points_in_polygon(pts, polygon) | (report.distance_to_polygon_edges(pts, polygon) <= margin_m)
+    return pts[near]
+
+
+class _Recorder:
+    """Lists grown during the flight, turned into the record's arrays at the end."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple] = []
+        self.swath: list[np.ndarray] = []
+        self.held: dict[str, list[tuple[float, float]]] = {}
+
+
+def _law_height_over(grid: TerrainGrid, centres: np.ndarray, k_sigma: float) -> float:
+    """Highest cell over ``centres`` (K, 2) as the law takes it (estimate + k sigma); NaN if none known."""
+    h, v, n = grid.height_at(centres[:, 0], centres[:, 1])
+    known = n > 0
+    if not known.any():
+        return math.nan
+    return float(np.max(margin_height(h[known], v[known], k_sigma)))
+
+
+def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = None,
+        world=None, renderer=None, on_frame: Callable[..., None] | None = None) -> FlightRecord:
+    """Take off at the circuit's first waypoint and fly ``laps`` laps with the service's mapper, map
+    and control in the loop. ``cfg`` is the flight's configuration (companion/quality/scenarios.py,
+    ``flight_config``); ``world`` and ``renderer`` may be given to reuse them across flights.
+    ``on_frame(t, truth, p_c, R_nc, image, step, mapper, nav, grid)`` is called after each mapped
+    frame (diagnostics). Never raises for a flight that goes wrong: ``complete`` is False and
+    ``problem`` says why."""
+    from drivers.sim.ardupilot import GUIDED, ArduPilotCopter
+    from drivers.sim.renderer import Renderer, RenderOptions
+    from drivers.sim.world import World
+
+    wall0 = time.perf_counter()
+    seed = cfg.sim.seed if seed is None else seed
+    rec = FlightRecord(scenario, seed, cfg.mapper.parameterisation, laps, cfg)
+    if world is None:
+        world = World.load(scenario)
+    camera, mount = camera_from_config(cfg.camera)
+    if renderer is None:
+        renderer = Renderer(world, camera, RenderOptions(noise_sigma=cfg.sim.image_noise_sigma,
+                                                         blur_sigma_px=cfg.sim.image_blur_sigma_px, seed=seed))
+    grid = TerrainGrid.from_config(cfg.terrain)
+    mapper = Mapper(cfg.mapper, camera, mount,
+                    depth_prior=lambda origin, rays: grid.ray_range(origin, rays, cfg.mapper.prior_max_range_m),
+                    default_ground_alt_m=cfg.terrain.default_ground_alt_m,
+                    detector=HarrisDetector(cfg.mapper, camera.width, camera.height, cfg.camera.border_px))
+    controller = Controller(cfg)
+    assembler = NavAssembler(cfg.nav)
+    obstacles = {o.name: footprint_cell_centres(o.footprint_ne_m, grid.cell_size_m, grid.cell_size_m)
+                 for o in world.obstacles}
+    k_sigma = cfg.avoidance.height_margin_sigma
+    out = _Recorder()
+    out.held = {name: [] for name in obstacles}
+    # Pixel rays for the swath: a coarse lattice over the image.
+    gu, gv = SWATH_GRID
+    uu, vv = np.meshgrid(np.linspace(0, camera.width - 1, gu), np.linspace(0, camera.height - 1, gv))
+    swath_rays_cam = camera.ray(np.stack([uu.ravel(), vv.ravel()], axis=1))
+
+    ap = ArduPilotCopter(cfg.sim, seed=seed)
+    link = _Link()
+
+    def feed(ids: tuple[int, ...]) -> NavState | None:
+        nav = None
+        for msg_id in ids:
+            msg = ap.build(msg_id)
+            if msg is not None:
+                got = assembler.update(msg, ap.t_s)
+                nav = got if got is not None else nav
+        return nav
+
+    try:
+        ap.run_for(max(0.5, cfg.sim.origin_delay_s + cfg.sim.gps_delay_s + 0.2))  # EKF origin, GPS use
+        takeoff_alt = float(cfg.avoidance.nominal_alt_m)
+        for what, cmd_id, params in (("GUIDED", mav.MAV_CMD_DO_SET_MODE, (1, GUIDED)),
+                                     ("arming", mav.MAV_CMD_COMPONENT_ARM_DISARM, (1,)),
+                                     ("takeoff", mav.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, takeoff_alt))):
+            result = command(ap, link, cmd_id, *params)
+            if result != mav.MAV_RESULT_ACCEPTED:
+                raise RuntimeError(f"the simulated vehicle refused {what} (COMMAND_ACK result {result})")
+        circuit_m = float(report.path_length(np.vstack([world.waypoints_ne_m, world.waypoints_ne_m[:1]]))[-1])
+        speed = max(cfg.control.cruise_speed_mps, 0.5)
+        t_end = ap.t_s + TAKEOFF_TIMEOUT_S + 3.0 * laps * circuit_m / speed + 60.0
+        frame_dt, control_dt = 1.0 / cfg.camera.rate_hz, 1.0 / cfg.control.rate_hz
+        next_frame = next_control = next_gps = next_ekf = next_held = ap.t_s
+        flying = False  # the service commands (above control.min_alt_m)
+        cruising = False  # recorded from the first time the nominal altitude is reached
+        t_takeoff = ap.t_s
+        while True:
+            ap.step()
+            t = ap.t_s
+            if t > t_end:
+                raise RuntimeError(f"{int(controller.lap)} of {laps} laps after {t - t_takeoff:.0f} s of flight: "
+                                   "the vehicle did not come round the circuit")
+            if t >= next_gps:
+                feed((mav.MAVLINK_MSG_ID_GPS_RAW_INT,))
+                next_gps += 1.0 / GPS_MSG_RATE_HZ
+            if t >= next_ekf:
+                feed((mav.MAVLINK_MSG_ID_EKF_STATUS_REPORT,))
+                next_ekf += 1.0 / EKF_MSG_RATE_HZ
+            if t >= next_control:
+                next_control += control_dt
+                nav = feed((mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION))
+                if nav is not None:
+                    decision = controller.decide(nav, grid)
+                    if decision.send:
+                        flying = True
+                        ap.handle(velocity_setpoint(decision.velocity_ned_mps, decision.yaw_rad), link)
+                    elif not flying and t - t_takeoff > TAKEOFF_TIMEOUT_S:
+                        raise RuntimeError(f"the vehicle did not climb to control.min_alt_m = {cfg.control.min_alt_m:g} m "
+                                           f"within {TAKEOFF_TIMEOUT_S:g} s of take-off")
+                    truth = ap.truth()
+                    if not cruising and -truth["p"][2] >= cfg.avoidance.nominal_alt_m - CRUISE_REACHED_M:
+                        cruising = True  # the climb-out is the autopilot's take-off, not the service's flight
+                    if cruising:
+                        c = decision.command
+                        lim = c.limiting_cell_ne if c.engaged and c.limiting_cell_ne is not None else (math.nan, math.nan)
+                        map_h = (float(grid.height_at(lim[0], lim[1])[0]) if math.isfinite(lim[0]) else math.nan)
+                        out.rows.append((t, truth["p"][0], truth["p"][1], -truth["p"][2], math.hypot(truth["v"][0], truth["v"][1]),
+                                         nav.altitude_m, decision.climb_rate_mps, c.nominal_climb_mps, c.engaged,
+                                         lim[0], lim[1], c.limiting_height_m if c.engaged else math.nan, map_h, decision.lap))
+                        if decision.lap > len(rec.lap_ends):
+                            rec.lap_ends.append(len(out.rows) - 1)
+                            rec.lap_maps.append(report.raster_from_tiles(grid.tiles()))
+                            if len(rec.lap_ends) >= laps:
+                                break
+            if cruising and t >= next_held:
+                next_held += HELD_SAMPLE_S
+                for name, centres in obstacles.items():
+                    out.held[name].append((t, _law_height_over(grid, centres, k_sigma)))
+            if t >= next_frame:
+                next_frame += frame_dt
+                if -ap.vehicle.p[2] < 2.0:
+                    continue
+                nav_f = feed((mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION))
+                if nav_f is None:
+                    continue
+                truth = ap.truth()
+                p_c, R_nc = mount.camera_pose(truth["p"], truth["R"])
+                image = renderer.render(p_c, R_nc)
+                step = mapper.step(nav_f, image)
+                rec.frames += 1
+                rays = swath_rays_cam @ R_nc.T
+                r = world.raycast(p_c, rays)
+                hit = np.isfinite(r)
+                if hit.any():
+                    pts = p_c[None, :] + r[hit, None] * (rays[hit] / np.linalg.norm(rays[hit], axis=1, keepdims=True))
+                    out.swath.append(np.floor(pts[:, :2] / grid.cell_size_m).astype(np.int64))
+                if len(step.points):
+                    grid.insert(step.points)
+                    rec.points_converged += len(step.points)
+                if on_frame is not None:
+                    on_frame(t, truth, p_c, R_nc, image, step, mapper, nav_f, grid)
+        rec.complete = True
+    except Exception as exc:  # noqa: BLE001 - a failed flight is a result (reported, never dropped)
+        rec.problem = f"{type(exc).__name__}: {exc}"
+    rec.sim_time_s = float(ap.t_s)
+    rec.final_map = report.raster_from_tiles(grid.tiles())
+    if out.rows:
+        a = np.array(out.rows, dtype=float)
+        rec.t_s, rec.truth_ne_m, rec.truth_alt_m, rec.truth_speed_mps = a[:, 0], a[:, 1:3], a[:, 3], a[:, 4]
+        rec.nav_alt_m, rec.climb_mps, rec.nominal_climb_mps = a[:, 5], a[:, 6], a[:, 7]
+        rec.engaged = a[:, 8].astype(bool)
+        rec.limiting_ne_m, rec.limiting_law_height_m, rec.limiting_map_height_m = a[:, 9:11], a[:, 11], a[:, 12]
+        rec.lap = a[:, 13].astype(np.int64)
+    if out.swath:
+        rec.swath_cells = np.unique(np.concatenate(out.swath), axis=0)
+    rec.held = {name: np.array(v, dtype=float).reshape(-1, 2) for name, v in out.held.items()}
+    rec.wall_s = time.perf_counter() - wall0
+    return rec
+
+
+def record_summary(rec: FlightRecord) -> dict[str, Any]:
+    """A few numbers about the flight itself (not the pilot's figures)."""
+    return {"frames": rec.frames, "points_converged": rec.points_converged, "sim_time_s": round(rec.sim_time_s, 1),
+            "wall_s": round(rec.wall_s, 1), "realtime_factor": round(rec.realtime_factor, 1) if rec.wall_s else None}

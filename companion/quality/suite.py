@@ -1,0 +1,443 @@
+"""``companion quality``: the scenario suite (docs/quality.md).
+
+Every scenario x seed x mapper parameterisation is one flight of the service's closed loop in
+simulated time (:mod:`companion.quality.engine`), judged by the pilot's figures
+(:mod:`companion.quality.metrics`). Flights run in parallel, one per core; a flight that fails to
+complete is reported as a failure with its reason, never dropped, and makes the exit status 1.
+Writes ``quality.json`` (schema ``companion.quality/1``), ``quality.md`` and, in ``quality/``, the
+side profile of each scenario's worst first pass.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import multiprocessing
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from companion.config import ConfigError
+
+PARAMETERISATIONS = ("inverse_depth", "cartesian")
+CAMERA_RATE_HZ = 15.0          # as the demo (the paper's camera ran at 16 Hz)
+DEFAULT_LAPS = 3               # the first pass and two more: the paper's figures are after three laps
+QUICK_SCENARIOS = ("default", "flat")
+SCHEMA = "companion.quality/1"
+
+
+def scenario_names() -> list[str]:
+    """Every scenario in config/scenarios/, in name order."""
+    from drivers.sim.world import SCENARIO_DIR
+
+    return sorted(p.stem for p in SCENARIO_DIR.glob("*.yaml"))
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"3"`` -> [1, 2, 3]; ``"1,5,9"`` -> [1, 5, 9]."""
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ConfigError(f"--seeds {text!r}: a count (3) or a comma-separated list (1,5,9) of integers") from None
+    if len(values) == 1 and "," not in text:
+        if not 1 <= values[0] <= 1000:
+            raise ConfigError(f"--seeds {text!r}: the count must be within 1..1000")
+        return list(range(1, values[0] + 1))
+    if not values or any(not 0 <= v < 2**31 for v in values):
+        raise ConfigError(f"--seeds {text!r}: seeds must be within 0..2^31-1")
+    return values
+
+
+def _overrides(args) -> tuple[tuple[str, dict], ...]:
+    """The service overrides of every flight: ``--config FILE`` then each ``--set``, in order."""
+    from companion.quality.scenarios import parse_set
+
+    layers: list[tuple[str, dict]] = []
+    if args.config:
+        path = Path(args.config)
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read configuration: {exc.strerror or exc}") from exc
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: the top level must be a mapping of sections")
+        layers.append((str(path), data))
+    for expr in args.set or ():
+        layers.append((f"--set {expr}", parse_set(expr)))
+    return tuple(layers)
+
+
+# --------------------------------------------------------------------------------------------
+# One flight (in a worker process)
+# --------------------------------------------------------------------------------------------
+
+_WORLDS: dict[str, Any] = {}
+
+
+def fly_one(job: tuple[str, int, str, int, tuple]) -> dict[str, Any]:
+    """Fly one (scenario, seed, parameterisation, laps, overrides); the run's figures plus the
+    first lap's side profile. Never raises: a failure is a run with ``complete`` false."""
+    scenario, seed, param, laps, overrides = job
+    t0 = time.perf_counter()
+    try:
+        from companion import report
+        from companion.quality import engine, metrics
+        from companion.quality.scenarios import flight_config
+        from drivers.sim.world import World
+
+        if scenario not in _WORLDS:
+            _WORLDS[scenario] = World.load(scenario)
+        world = _WORLDS[scenario]
+        cfg = flight_config(world, scenario, param, seed, CAMERA_RATE_HZ, overrides)
+        rec = engine.fly(scenario, cfg, laps, world=world)
+        run = metrics.run_figures(rec, world)
+        run.update(engine.record_summary(rec))
+        profile = None
+        if len(rec.t_s):
+            end = rec.lap_ends[0] + 1 if rec.lap_ends else len(rec.t_s)
+            lap_map = rec.lap_maps[0] if rec.lap_maps else rec.final_map
+            p = report.lap_profile(rec.truth_ne_m[:end], rec.truth_alt_m[:end], world.terrain_height, lap_map,
+                                   corridor_m=cfg.avoidance.miss_distance_m, max_points=1500)
+            profile = {k: np.asarray(getattr(p, k), float).tolist() for k in
+                       ("distance_m", "alt_m", "true_terrain_m", "mapped_terrain_m", "mapped_corridor_max_m")}
+        return {"run": run, "profile": profile, "description": world.spec.description}
+    except Exception as exc:  # noqa: BLE001 - reported as a failed run
+        return {"run": {"scenario": scenario, "seed": seed, "parameterisation": param, "complete": False,
+                        "problem": f"{type(exc).__name__}: {exc}", "laps_requested": laps, "speed_flown_mps": None,
+                        "laps": [], "map": {"flat": {}, "obstacles": {}, "all": {}},
+                        "wall_s": round(time.perf_counter() - t0, 1)},
+                "profile": None, "description": ""}
+
+
+# --------------------------------------------------------------------------------------------
+# Summaries
+# --------------------------------------------------------------------------------------------
+
+
+def _vals(runs: list[dict], get) -> list[float]:
+    out = []
+    for r in runs:
+        try:
+            v = get(r)
+        except (KeyError, IndexError, TypeError):
+            v = None
+        if v is not None and math.isfinite(v):
+            out.append(float(v))
+    return out
+
+
+def _lap(r: dict, k: int) -> dict:
+    return r["laps"][k] if len(r.get("laps") or []) > k else {}
+
+
+def summarise(runs: list[dict]) -> list[dict[str, Any]]:
+    """One row per (scenario, parameterisation) over its seeds: the worst of each figure."""
+    rows = []
+    keys = sorted({(r["scenario"], r["parameterisation"]) for r in runs},
+                  key=lambda k: (k[0], PARAMETERISATIONS.index(k[1]) if k[1] in PARAMETERISATIONS else 9))
+    for scenario, param in keys:
+        group = [r for r in runs if r["scenario"] == scenario and r["parameterisation"] == param]
+        first = _vals(group, lambda r: _lap(r, 0).get("min_clearance_fraction"))
+        every = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("min_clearance_fraction"))
+        margin = _vals([lap for r in group for lap in r.get("laps") or []],
+                       lambda lap: None if lap.get("warning_s") is None else lap["warning_s"] - lap["needed_s"])
+        med = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("cruise_excess_median_m"))
+        p95 = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("cruise_excess_p95_m"))
+        eng = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("engaged_flat_fraction"))
+        false = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("false_climbs"))
+        obst = _vals([o for r in group for o in (_lap(r, 1).get("obstacles") or [])],
+                     lambda o: o.get("mapped_fraction_of_textured"))
+        rows.append({
+            "scenario": scenario, "parameterisation": param, "runs": len(group),
+            "complete": sum(1 for r in group if r.get("complete")),
+            "first_pass_min_clearance_fraction": min(first) if first else None,
+            "min_clearance_fraction": min(every) if every else None,
+            "worst_warning_margin_s": min(margin) if margin else None,
+            "cruise_excess_median_m": max(med) if med else None,
+            "cruise_excess_p95_m": max(p95) if p95 else None,
+            "engaged_flat_fraction": max(eng) if eng else None,
+            "false_climbs": int(sum(false)) if false else 0,
+            "flat_bias_m": _mean(_vals(group, lambda r: r["map"]["flat"].get("bias_m"))),
+            "flat_within_1m": min(_vals(group, lambda r: r["map"]["flat"].get("within_1m")), default=None),
+            "all_rmse_m": _mean(_vals(group, lambda r: r["map"]["all"].get("rmse_m"))),
+            "obstacle_height_lap2_fraction": min(obst) if obst else None,
+            "speed_flown_mps": _mean(_vals(group, lambda r: r.get("speed_flown_mps"))),
+            "speed_commanded_mps": group[0].get("speed_commanded_mps"),
+        })
+    return rows
+
+
+def _mean(v: list[float]) -> float | None:
+    return float(np.mean(v)) if v else None
+
+
+def _f(x, fmt: str = "{:.2f}") -> str:
+    return "–" if x is None or (isinstance(x, float) and not math.isfinite(x)) else fmt.format(x)
+
+
+DEFINITIONS = """\
+## What each figure means
+
+Every figure comes from the flight's own record; nothing is excused: every lap counts, the
+first included, and every obstacle in every lap. The code is companion/quality/metrics.py.
+
+- **first-pass / least clearance fraction**: the least height of the vehicle above the true
+  terrain directly below it, over the lap (first lap / any lap), divided by the configured
+  clearance. Per obstacle: the same over the samples above its footprint.
+- **warning margin** (s): per obstacle and lap, *warning* = the time the vehicle reached the
+  obstacle's footprint minus the first time the map held it high enough to need a climb (a
+  footprint cell, as the law takes it: estimate + `avoidance.height_margin_sigma` sigma, plus the
+  clearance above the nominal altitude); *needed* = the law's shortest climb from the nominal
+  altitude to the obstacle's height + clearance (`stopping_time`, with the law's acceleration
+  and climb limit). The margin is warning - needed: negative = the map got it too late for a
+  smooth climb. An obstacle never held has no warning (shown as the worst). The lap's figure is
+  its worst obstacle.
+- **cruise excess** (m): altitude minus the commanded height over flat ground far from
+  obstacles: the true terrain below is flat, and along the path flown no sample above an
+  obstacle's footprint (grown by the miss distance) lies within the law's climb distance ahead
+  (miss distance + speed x shortest climb to obstacle + clearance) or its return distance behind
+  (miss distance + speed x (descent at the descent limit + 3 time constants)). Median and 95th
+  percentile per lap; the table gives the worst lap.
+- **engaged over flat**: the fraction of those flat-ground samples where the law was engaged
+  (an obstacle term demanded more than the nominal-altitude command).
+- **false climbs**: engaged episodes where, at the step of the largest commanded climb, the
+  limiting cell lies on flat true ground and its mapped height is more than 2 m above it.
+- **map, flat**: cells whose true terrain is flat over the cell and one cell around it: bias
+  (mean of mapped - true), RMSE, fraction within 1 m, and coverage (of the flat cells a camera ray
+  met, the fraction the map holds). **map, all**: RMSE over every mapped cell.
+- **obstacle height** (lap 2): the 95th percentile of the mapped heights of the footprint cells
+  holding at least two points, at the end of the second lap, over the obstacle's textured height
+  (the part a texture-tracking mapper can see). The table gives the least over the obstacles.
+- **speed flown**: path length over time per lap, mean over the laps (the commanded speed beside it).
+"""
+
+
+def markdown(doc: dict[str, Any], figures: dict[str, str]) -> str:
+    """quality.md: how it was made, the headline, the summary per scenario, every run, the pictures."""
+    opts = doc["options"]
+    lines = [
+        "# Scenario suite: what a pilot sees",
+        "",
+        f"Made by `{doc['command']}` on {doc['generated'][:10]} ({doc['machine']['cpus']} cores, "
+        f"Python {doc['machine']['python']}): {len(doc['runs'])} flights, {opts['laps']} laps each, "
+        f"{doc['wall_s']:.0f} s wall. The flights are the service's closed loop in simulated time "
+        "(companion/quality/engine.py); the figures are defined below and in companion/quality/metrics.py.",
+        "",
+    ]
+    failed = [r for r in doc["runs"] if not r.get("complete")]
+    if failed:
+        lines += ["**Failed runs** (not dropped):", ""]
+        lines += [f"- {r['scenario']} seed {r['seed']} {r['parameterisation']}: {r.get('problem') or 'laps not flown'}"
+                  for r in failed]
+        lines.append("")
+    lines += ["## Headline", ""]
+    lines += [f"- {h}" for h in headline(doc["runs"])]
+    lines += ["", "## Per scenario (worst over the seeds)", "",
+              "| scenario | mapper | runs ok | first-pass clearance | least clearance | warning margin (s) | "
+              "cruise excess median / p95 (m) | engaged over flat | false climbs | flat bias (m) | flat within 1 m | "
+              "all RMSE (m) | obstacle height lap 2 | speed flown / commanded (m/s) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for s in doc["summary"]:
+        lines.append(
+            f"| {s['scenario']} | {s['parameterisation'].replace('_', ' ')} | {s['complete']}/{s['runs']} | "
+            f"{_f(s['first_pass_min_clearance_fraction'])} | {_f(s['min_clearance_fraction'])} | "
+            f"{_f(s['worst_warning_margin_s'], '{:.1f}')} | {_f(s['cruise_excess_median_m'], '{:.1f}')} / "
+            f"{_f(s['cruise_excess_p95_m'], '{:.1f}')} | {_f(s['engaged_flat_fraction'])} | {s['false_climbs']} | "
+            f"{_f(s['flat_bias_m'])} | {_f(s['flat_within_1m'])} | {_f(s['all_rmse_m'])} | "
+            f"{_f(s['obstacle_height_lap2_fraction'])} | {_f(s['speed_flown_mps'], '{:.1f}')} / "
+            f"{_f(s['speed_commanded_mps'], '{:.1f}')} |")
+    lines += ["", "Scenarios:", ""]
+    for name, desc in sorted(doc["scenarios"].items()):
+        lines.append(f"- **{name}**: {desc}")
+    lines += ["", DEFINITIONS, "## Every run", "",
+              "| scenario | seed | mapper | complete | clearance per lap | warning - needed per lap (s) | "
+              "cruise excess median per lap (m) | engaged over flat per lap | flat bias / within 1 m | speed (m/s) | x real time |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in doc["runs"]:
+        laps = r.get("laps") or []
+        lines.append(
+            f"| {r['scenario']} | {r['seed']} | {r['parameterisation'].replace('_', ' ')} | {'yes' if r.get('complete') else 'NO'} | "
+            + " ".join(_f(lap.get("min_clearance_fraction")) for lap in laps) + " | "
+            + " ".join("never" if lap.get("warning_s") is None and lap.get("needed_s") is not None else
+                       _f(None if lap.get("warning_s") is None else lap["warning_s"] - lap["needed_s"], "{:.1f}")
+                       for lap in laps) + " | "
+            + " ".join(_f(lap.get("cruise_excess_median_m"), "{:.1f}") for lap in laps) + " | "
+            + " ".join(_f(lap.get("engaged_flat_fraction")) for lap in laps) + " | "
+            + f"{_f(r['map']['flat'].get('bias_m'))} / {_f(r['map']['flat'].get('within_1m'))} | "
+            + f"{_f(r.get('speed_flown_mps'), '{:.1f}')} | {_f(r.get('realtime_factor'), '{:.0f}')} |")
+    if figures:
+        lines += ["", "## Worst first pass of each scenario", ""]
+        for name, rel in sorted(figures.items()):
+            lines += [f"![{name}: worst first pass]({rel})", ""]
+    return "\n".join(lines) + "\n"
+
+
+def headline(runs: list[dict]) -> list[str]:
+    """The worst first-pass clearance and the worst cruise excess, each with where it happened."""
+    out = []
+    for param in PARAMETERISATIONS:
+        group = [r for r in runs if r["parameterisation"] == param and r.get("laps")]
+        firsts = [(r["laps"][0].get("min_clearance_fraction"), r) for r in group
+                  if r["laps"][0].get("min_clearance_fraction") is not None]
+        excess = [(lap.get("cruise_excess_median_m"), lap.get("cruise_excess_p95_m"), lap["lap"], r)
+                  for r in group for lap in r["laps"] if lap.get("cruise_excess_median_m") is not None]
+        name = param.replace("_", " ")
+        if firsts:
+            v, r = min(firsts, key=lambda x: x[0])
+            out.append(f"{name}: worst first-pass clearance {v:.2f} of the configured clearance "
+                       f"({r['scenario']}, seed {r['seed']}, over {r['laps'][0].get('warning_obstacle') or 'flat ground'})")
+        if excess:
+            m, p, lap, r = max(excess, key=lambda x: x[0])
+            out.append(f"{name}: worst cruise excess {m:.1f} m median, {_f(p, '{:.1f}')} m p95 "
+                       f"({r['scenario']}, seed {r['seed']}, lap {lap})")
+    return out
+
+
+def worst_first_pass_figures(results: list[dict], folder: Path, rel_prefix: str) -> dict[str, str]:
+    """One side profile per scenario: its run with the least first-lap clearance fraction."""
+    from companion.quality.figures import side_profile
+
+    out = {}
+    by_scenario: dict[str, list[dict]] = {}
+    for res in results:
+        if res["profile"] is not None and res["run"].get("laps"):
+            by_scenario.setdefault(res["run"]["scenario"], []).append(res)
+    for scenario, group in by_scenario.items():
+        res = min(group, key=lambda x: x["run"]["laps"][0].get("min_clearance_fraction") or math.inf)
+        run, prof = res["run"], res["profile"]
+        lap = run["laps"][0]
+        name = f"{scenario}_worst_first_pass.png"
+        title = (f"{scenario}: worst first pass ({run['parameterisation'].replace('_', ' ')}, seed {run['seed']}): "
+                 f"least clearance {_f(lap.get('min_clearance_fraction'))} of {run['clearance_m']:g} m")
+        side_profile(folder / name, *(np.asarray(prof[k], float) for k in
+                                      ("distance_m", "alt_m", "true_terrain_m", "mapped_terrain_m", "mapped_corridor_max_m")),
+                     clearance_m=float(run["clearance_m"]), nominal_alt_m=float(run["nominal_alt_m"]), title=title)
+        out[scenario] = f"{rel_prefix}{name}"
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------------------------
+
+
+def configure_parser(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", action="append", metavar="NAME",
+                   help="scenario name in config/scenarios/ or a YAML path (repeatable; default: every scenario)")
+    p.add_argument("--seeds", default="3", help="a count (3 = seeds 1..3) or a list (1,5,9); default 3")
+    p.add_argument("--parameterisation", choices=("inverse_depth", "cartesian", "both"), default="both")
+    p.add_argument("--laps", type=int, default=DEFAULT_LAPS, help=f"laps per flight (default {DEFAULT_LAPS})")
+    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="flights in parallel (default: the cores)")
+    p.add_argument("--quick", action="store_true",
+                   help=f"a CI-sized subset: scenarios {', '.join(QUICK_SCENARIOS)}, seed 1, inverse depth, 1 lap")
+    p.add_argument("--config", metavar="FILE", help="service configuration applied to every flight (YAML, partial)")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
+                   help="one service setting for every flight (repeatable; after --config)")
+    p.add_argument("--output", default="quality-report",
+                   help="folder for quality.json, quality.md and quality/*.png (docs = the committed table)")
+
+
+def _mmss(seconds: float) -> str:
+    return f"{int(seconds // 60)}m{int(seconds % 60):02d}s"
+
+
+class Progress:
+    """``[#####-----] 12/54 flights, 0 failed, 3m10s, ~9m left`` on stderr (in place on a terminal)."""
+
+    def __init__(self, total: int, stream=None):
+        self.total, self.stream = total, stream or sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.t0 = time.monotonic()
+
+    def show(self, done: int, failed: int, last: str = "") -> None:
+        el = time.monotonic() - self.t0
+        left = el / done * (self.total - done) if done else math.nan
+        bar = "#" * int(round(20 * done / max(1, self.total)))
+        text = (f"[{bar:<20}] {done}/{self.total} flights, {failed} failed, {_mmss(el)}"
+                + (f", ~{_mmss(left)} left" if math.isfinite(left) else "")
+                + (f"  {last}" if last else ""))
+        self.stream.write(("\r" + text.ljust(110)) if self.tty else text + "\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def main(args: argparse.Namespace) -> int:
+    from companion.quality.scenarios import flight_config
+    from drivers.sim.world import World
+
+    try:
+        if args.quick:
+            scenarios, seeds, params, laps = list(QUICK_SCENARIOS), [1], ["inverse_depth"], 1
+        else:
+            scenarios = args.scenario or scenario_names()
+            seeds = parse_seeds(args.seeds)
+            params = list(PARAMETERISATIONS) if args.parameterisation == "both" else [args.parameterisation]
+            laps = args.laps
+        if not 1 <= laps <= 50:
+            raise ConfigError(f"--laps must be within 1..50, got {laps}")
+        if not 1 <= args.jobs <= 256:
+            raise ConfigError(f"--jobs must be within 1..256, got {args.jobs}")
+        overrides = _overrides(args)
+        # Every scenario and override is validated before any flight starts.
+        for s in scenarios:
+            flight_config(World.load(s), s, params[0], seeds[0], CAMERA_RATE_HZ, overrides)
+    except ConfigError as exc:
+        print(f"companion quality: {exc}", file=sys.stderr)
+        return 2
+    jobs = [(s, seed, p, laps, overrides) for s in scenarios for p in params for seed in seeds]
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    print(f"companion quality: {len(scenarios)} scenario(s) x {len(seeds)} seed(s) x {len(params)} mapper(s) = "
+          f"{len(jobs)} flights of {laps} lap(s), {min(args.jobs, len(jobs))} at a time; report in {out}/", file=sys.stderr)
+    progress = Progress(len(jobs))
+    results, failed = [], 0
+    t0 = time.monotonic()
+    progress.show(0, 0)
+    ctx = multiprocessing.get_context("fork")
+    with ctx.Pool(processes=max(1, min(args.jobs, len(jobs))), maxtasksperchild=4) as pool:
+        for res in pool.imap_unordered(fly_one, jobs):
+            results.append(res)
+            r = res["run"]
+            failed += 0 if r.get("complete") else 1
+            progress.show(len(results), failed, f"{r['scenario']} s{r['seed']} {r['parameterisation']}")
+    progress.close()
+    order = {j[:3]: i for i, j in enumerate(jobs)}
+    results.sort(key=lambda x: order.get((x["run"]["scenario"], x["run"]["seed"], x["run"]["parameterisation"]), 0))
+    runs = [res["run"] for res in results]
+    wall = time.monotonic() - t0
+    command = "companion quality " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else "companion quality"
+    doc = {
+        "schema": SCHEMA,
+        "generated": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": command,
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "processor": platform.processor() or platform.machine()},
+        "options": {"scenarios": scenarios, "seeds": seeds, "parameterisations": params, "laps": laps,
+                    "overrides": [src for src, _ in overrides], "camera_rate_hz": CAMERA_RATE_HZ},
+        "wall_s": round(wall, 1),
+        "scenarios": {res["run"]["scenario"]: res["description"] for res in results if res["description"]},
+        "summary": summarise(runs),
+        "runs": runs,
+    }
+    fig_dir = out / "quality"
+    figures = worst_first_pass_figures(results, fig_dir, "quality/")
+    (out / "quality.json").write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+    (out / "quality.md").write_text(markdown(doc, figures))
+    for line in headline(runs):
+        print(f"companion quality: {line}", file=sys.stderr)
+    print(f"companion quality: {len(runs) - failed} of {len(runs)} flights complete in {wall:.0f} s; "
+          f"wrote {out / 'quality.md'} and {out / 'quality.json'}", file=sys.stderr)
+    return 0 if failed == 0 else 1

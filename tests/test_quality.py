@@ -1,0 +1,250 @@
+"""The scenario suite (companion/quality/): the figures proven on a record whose every figure has a
+known value, the engine's determinism, the control decision the daemon and the engine share, the
+command end to end (its CI-sized subset) and the validation of its overrides."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion import report
+from companion.config import ConfigError, replace
+from companion.control import Controller
+from companion.messages import NavState
+from companion.quality import engine, metrics
+from companion.quality.scenarios import flight_config, parse_set
+from companion.terrain.grid import TerrainGrid
+from drivers.sim.world import World
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# One 20 x 20 m, 10 m block across a straight north-bound path; clearance 10 m, nominal 15 m, 5 m/s.
+WORLD = {
+    "name": "known", "description": "a block across a straight path",
+    "boxes": [{"name": "block", "center_ne_m": [100.0, 0.0], "size_m": [20.0, 20.0], "height_m": 10.0,
+               "wall_texture": "fields", "roof_texture": "gravel"}],
+    "circuit": {"waypoints_ne_m": [[0.0, 0.0], [200.0, 0.0]], "altitude_agl_m": 15.0, "speed_mps": 5.0, "clearance_m": 10.0},
+}
+
+
+def known_record():
+    """Two laps, each straight north from n = 0 to n = 200 m at 5 m/s (20 Hz: a sample every 0.25 m).
+
+    altitude: nominal + 1 m everywhere, except over the block: 15 m (5 m above its top: half the
+    clearance) in lap 1, 20 m in lap 2. The map first holds the block at t = 12 s (n = 60 m of lap 1);
+    the vehicle reaches it at n = 90 m, t = 18 s. Engaged: n in [0, 20) of lap 1 (flat, far), and
+    three climbs in lap 2: for a false 3 m cell on flat ground (n in [170, 175)), for a 1.5 m cell on
+    flat ground (n in [180, 182), not false: under 2 m) and for the block itself (n in [60, 110))."""
+    world = World.from_dict(WORLD, "known.yaml")
+    cfg = flight_config(world, "known.yaml", "inverse_depth", 1, 15.0)
+    rec = engine.FlightRecord("known", 1, "inverse_depth", 2, cfg)
+    n_lap = np.arange(0.0, 200.0, 0.25)
+    t = np.arange(2 * len(n_lap)) * 0.05
+    n = np.concatenate([n_lap, n_lap])
+    ne = np.stack([n, np.zeros_like(n)], axis=1)
+    over = (n >= 90.0) & (n <= 110.0)
+    lap2 = np.arange(len(n)) >= len(n_lap)
+    alt = np.where(over, np.where(lap2, 20.0, 15.0), 16.0)
+    engaged = (~lap2 & (n < 20.0)) | (lap2 & (((n >= 170) & (n < 175)) | ((n >= 180) & (n < 182)) | ((n >= 60) & (n < 110))))
+    lim = np.full((len(n), 2), np.nan)
+    lim_h = np.full(len(n), np.nan)
+    lim[lap2 & (n >= 170) & (n < 175)] = (180.5, 0.5)
+    lim_h[lap2 & (n >= 170) & (n < 175)] = 3.0
+    lim[lap2 & (n >= 180) & (n < 182)] = (190.5, 0.5)
+    lim_h[lap2 & (n >= 180) & (n < 182)] = 1.5
+    lim[lap2 & (n >= 60) & (n < 110)] = (100.5, 0.5)
+    lim_h[lap2 & (n >= 60) & (n < 110)] = 10.0
+    rec.t_s, rec.truth_ne_m, rec.truth_alt_m = t, ne, alt
+    rec.truth_speed_mps = np.full(len(n), 5.0)
+    rec.nav_alt_m = alt.copy()
+    rec.engaged = engaged
+    rec.climb_mps = np.where(engaged, 1.0, 0.0)
+    rec.nominal_climb_mps = np.zeros(len(n))
+    rec.limiting_ne_m, rec.limiting_map_height_m, rec.limiting_law_height_m = lim, lim_h, lim_h
+    rec.lap = lap2.astype(np.int64)
+    rec.lap_ends = [len(n_lap) - 1, len(n) - 1]
+    # The map: flat cells +0.3 m, the first 10 rows +1.5 m, the block's cells at 9 m (3 points each).
+    h = np.full((200, 20), 0.3)
+    h[:10] = 1.5
+    h[90:110] = 9.0
+    count = np.full((200, 20), 3, np.int64)
+    raster = report.MapRaster(h, count, 0.0, -10.0, 1.0)
+    rec.lap_maps = [raster, raster]
+    rec.final_map = raster
+    rec.held = {"block": np.array([[0.0, math.nan], [11.5, -8.0], [12.0, 6.0], [30.0, 9.5]])}
+    # the camera saw every cell of the raster, and 50 flat cells beside it the map does not hold
+    ii, jj = np.meshgrid(np.arange(200), np.arange(-10, 10), indexing="ij")
+    extra = np.stack(np.meshgrid(np.arange(0, 10), np.arange(20, 25), indexing="ij"), axis=-1).reshape(-1, 2)
+    rec.swath_cells = np.concatenate([np.stack([ii.ravel(), jj.ravel()], axis=1), extra])
+    rec.complete = True
+    return rec, world
+
+
+def test_every_figure_of_a_known_record_has_its_known_value():
+    rec, world = known_record()
+    run = metrics.run_figures(rec, world)
+    lap1, lap2 = run["laps"]
+    # least clearance: 5 m over the block in lap 1 (half of 10 m), 10 m in lap 2; 16 m over flat ground
+    assert lap1["min_clearance_fraction"] == 0.5 and lap2["min_clearance_fraction"] == 1.0
+    assert lap1["obstacles"][0]["min_clearance_fraction"] == 0.5
+    # warning: reached at t = 18 s (n = 90 m), held from t = 12 s: 6 s; needed: 2 sqrt(5 m / 1 m/s^2)
+    assert lap1["warning_s"] == 6.0 and lap1["needed_s"] == round(2 * math.sqrt(5.0), 2)
+    assert lap1["obstacles"][0]["held_before"] is True
+    # cruise excess: exactly 1 m wherever the ground is flat and far from the block
+    assert lap1["cruise_excess_median_m"] == 1.0 and lap1["cruise_excess_p95_m"] == 1.0
+    # flat and far: before n = 85 - (5 + 5 x 2 sqrt 5) and after n = 115 + 5 + 5 x (5 / 2 + 3 x 1.5)
+    n = np.arange(0.0, 200.0, 0.25)
+    far = (n < 85.0 - (5.0 + 5.0 * 2 * math.sqrt(5.0))) | (n > 115.0 + 5.0 + 5.0 * (2.5 + 4.5))
+    assert lap1["engaged_flat_fraction"] == round(np.count_nonzero(far & (n < 20.0)) / np.count_nonzero(far), 3)
+    assert lap2["engaged_flat_fraction"] == round(np.count_nonzero(far & (((n >= 170) & (n < 175)) | ((n >= 180) & (n < 182))))
+                                                  / np.count_nonzero(far), 3)
+    # false climbs: only the 3 m cell on flat ground (the 1.5 m one is under 2 m, the block is real)
+    assert lap1["false_climbs"] == 0 and lap2["false_climbs"] == 1
+    # the map over flat ground: rows 0..88 and 111..199 (a cell's neighbourhood must be flat too)
+    flat = metrics.map_figures(rec.final_map, world.terrain_height, metrics.obstacles_of(world), rec.swath_cells)["flat"]
+    n_flat, n_high = 178 * 20, 10 * 20
+    assert flat["cells"] == n_flat
+    assert flat["bias_m"] == round((n_high * 1.5 + (n_flat - n_high) * 0.3) / n_flat, 3)
+    assert flat["within_1m"] == round((n_flat - n_high) / n_flat, 3)
+    assert flat["rmse_m"] == round(math.sqrt((n_high * 2.25 + (n_flat - n_high) * 0.09) / n_flat), 3)
+    assert flat["coverage"] == round(n_flat / (n_flat + 50), 3)
+    assert run["map"]["all"]["rmse_m"] == round(math.sqrt((n_high * 2.25 + (n_flat - n_high + 40) * 0.09 + 400 * 1.0) / 4000), 3)
+    block = run["map"]["obstacles"]["block"]
+    assert block["bias_m"] == -1.0 and block["mapped_height_m"] == 9.0 and block["mapped_fraction_of_textured"] == 0.9
+    assert run["speed_flown_mps"] == 5.0 and run["complete"] is True
+
+
+def test_an_obstacle_never_held_has_no_warning_and_a_late_one_a_negative_one():
+    rec, world = known_record()
+    law = rec.cfg.avoidance
+    never = metrics.first_held_time(np.array([[0.0, 1.0], [50.0, 4.9]]), law)  # 4.9 + 10 < 15: no climb needed
+    assert never == math.inf
+    late = metrics.obstacle_lap_figures(rec.t_s[:800], rec.truth_ne_m[:800], rec.truth_alt_m[:800], world.terrain_height,
+                                        metrics.obstacles_of(world)[0], law, 20.0, 5.0, None)
+    assert late["warning_s"] == -2.0 and late["held_before"] is False
+
+
+def test_the_daemon_and_the_engine_share_the_control_decision():
+    world = World.from_dict(WORLD, "known.yaml")
+    cfg = flight_config(world, "known.yaml", "inverse_depth", 1, 15.0)
+    grid = TerrainGrid.from_config(cfg.terrain)
+    nav = NavState(t_s=1.0, position_ned_m=np.array([0.0, 0.0, -3.0]), velocity_ned_mps=np.array([5.0, 0.0, 0.0]),
+                   quaternion_wxyz=np.array([1.0, 0.0, 0.0, 0.0]), covariance=np.eye(9) * 0.01)
+    low = Controller(cfg).decide(nav, grid)
+    assert low.send is False  # below control.min_alt_m: take-off is the autopilot's
+    high = Controller(cfg).decide(replace(nav, position_ned_m=np.array([0.0, 0.0, -10.0])), grid)
+    assert high.send and high.climb_rate_mps > 0 and np.allclose(high.velocity_ned_mps[:2], [5.0, 0.0], atol=0.5)
+    off = Controller(replace(cfg, **{"avoidance.enabled": False})).decide(replace(nav, position_ned_m=np.array([0.0, 0.0, -10.0])), grid)
+    assert off.climb_rate_mps == pytest.approx(min(off.command.nominal_climb_mps, cfg.avoidance.max_climb_mps))
+    from companion import daemon
+    assert daemon.Controller is Controller
+
+
+def test_the_engine_flies_the_same_flight_for_the_same_inputs(tmp_path):
+    path = tmp_path / "short.yaml"
+    path.write_text(json.dumps({"name": "short", "circuit": {"waypoints_ne_m": [[0, 0], [40, 0], [40, 20], [0, 20]],
+                                                             "altitude_agl_m": 12.0, "speed_mps": 6.0, "clearance_m": 10.0}}))
+    world = World.load(path)
+    cfg = flight_config(world, str(path), "inverse_depth", 3, 15.0)
+    a, b = (engine.fly(str(path), cfg, 1, world=world) for _ in range(2))
+    assert a.complete and b.complete, (a.problem, b.problem)
+    assert a.frames > 100 and a.points_converged > 0
+    assert np.array_equal(a.truth_alt_m, b.truth_alt_m) and np.array_equal(a.truth_ne_m, b.truth_ne_m)
+    assert np.array_equal(a.final_map.height, b.final_map.height, equal_nan=True)
+    c = engine.fly(str(path), replace(cfg, **{"sim.seed": 4}), 1, world=world)
+    assert not np.array_equal(a.truth_alt_m[: len(c.truth_alt_m)], c.truth_alt_m[: len(a.truth_alt_m)])
+
+
+def test_quality_quick_subset_runs_end_to_end(tmp_path):
+    out = tmp_path / "q"
+    proc = subprocess.run([sys.executable, "-m", "companion.cli", "quality", "--quick", "--output", str(out)],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    doc = json.loads((out / "quality.json").read_text())
+    assert doc["schema"] == "companion.quality/1" and len(doc["runs"]) == 2
+    md = (out / "quality.md").read_text()
+    for run in doc["runs"]:
+        assert run["complete"] is True and len(run["laps"]) == 1
+        assert f"| {run['scenario']} | {run['seed']} |" in md
+        lap = run["laps"][0]
+        for key in ("min_clearance_fraction", "cruise_excess_median_m", "cruise_excess_p95_m", "engaged_flat_fraction"):
+            assert isinstance(lap[key], float) and math.isfinite(lap[key]), (run["scenario"], key, lap[key])
+        assert isinstance(lap["false_climbs"], int)
+        assert all(isinstance(run["map"]["flat"][k], float) for k in ("bias_m", "rmse_m", "within_1m"))
+        assert isinstance(run["speed_flown_mps"], float) and run["speed_flown_mps"] > 1.0
+    default = next(r for r in doc["runs"] if r["scenario"] == "default")
+    assert default["laps"][0]["needed_s"] > 0 and "building" in default["map"]["obstacles"]
+    assert (out / "quality" / "default_worst_first_pass.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--set", "camera.mount_pich_deg=-30"], "camera.mount_pich_deg"),
+    (["--set", "avoidance.clearance_m=-3"], "avoidance.clearance_m"),
+    (["--set", "nonsense"], "section.key=value"),
+    (["--scenario", "no_such_world"], "no_such_world"),
+    (["--seeds", "x"], "--seeds"),
+])
+def test_quality_refuses_a_wrong_setting_in_one_line_before_flying(tmp_path, args, words):
+    proc = subprocess.run([sys.executable, "-m", "companion.cli", "quality", "--output", str(tmp_path / "q"), *args],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 2
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and words in lines[0], proc.stderr
+    assert not (tmp_path / "q" / "quality.json").exists()
+
+
+def test_overrides_apply_in_order_and_a_scenario_carries_its_settings():
+    world = World.load("treeline_tall")
+    assert world.service == {"camera": {"mount_pitch_deg": -35.0}}
+    cfg = flight_config(world, "treeline_tall", "cartesian", 2, 15.0,
+                        (("a", parse_set("camera.mount_pitch_deg=-25")), ("b", parse_set("mapper.max_features=80"))))
+    assert cfg.camera.mount_pitch_deg == -25.0 and cfg.mapper.max_features == 80
+    assert cfg.avoidance.nominal_alt_m == 18.0 and cfg.avoidance.clearance_m == 12.0 and cfg.control.cruise_speed_mps == 8.0
+    assert cfg.mapper.parameterisation == "cartesian" and cfg.sim.seed == 2
+    with pytest.raises(ConfigError, match="bad.yaml: unknown key 'service.camera.tilt'"):
+        World.from_dict({"service": {"camera": {"tilt": 3}}}, "bad.yaml")
+
+
+def test_every_scenario_loads_and_flies_over_its_obstacles():
+    from companion.quality.suite import scenario_names
+
+    names = scenario_names()
+    assert len(names) >= 8
+    for name in names:
+        world = World.load(name)
+        wp = np.vstack([world.waypoints_ne_m, world.waypoints_ne_m[:1]])
+        # dense samples of the circuit: it passes over an obstacle, and every other one is beside the path
+        s = np.linspace(0.0, 1.0, 200)[:, None]
+        path = np.concatenate([a + s * (b - a) for a, b in zip(wp[:-1], wp[1:])])
+        over = [report.points_in_polygon(path, o.footprint_ne_m).any() for o in world.obstacles]
+        assert any(over) or not world.obstacles, name
+        for o in world.obstacles:
+            near = report.points_in_polygon(path, o.footprint_ne_m) | (report.distance_to_polygon_edges(path, o.footprint_ne_m) <= 15.0)
+            assert near.any(), (name, o.name)
+            inside = report.points_in_polygon(path, o.footprint_ne_m)
+            if inside.any():
+                assert np.max(world.terrain_height(path[inside, 0], path[inside, 1])) == pytest.approx(o.height_m, rel=0.02)  # a ridge: the samples straddle its crest
+
+
+def test_faint_texture_is_faint():
+    from companion.config import CompanionConfig
+    from companion.geometry import camera_from_config
+    from drivers.sim.renderer import Renderer, RenderOptions
+
+    camera, _ = camera_from_config(CompanionConfig().camera)
+    spread = {}
+    for contrast in (1.0, 0.25):
+        world = World.from_dict({"tree_lines": [{"name": "t", "start_ne_m": [20.0, -30.0], "end_ne_m": [20.0, 30.0],
+                                                 "depth_m": 8.0, "height_m": 22.0, "contrast": contrast}]})
+        r = Renderer(world, camera, RenderOptions(noise_sigma=0.0, seed=1))
+        # level, looking north at the trees' face 16 m away: the middle of the image is leaves
+        image = r.render(np.array([0.0, 0.0, -11.0]), np.eye(3))
+        spread[contrast] = float(image[160:320, 220:420].std())
+    assert spread[1.0] > 10.0
+    assert spread[0.25] == pytest.approx(0.25 * spread[1.0], rel=0.15), spread
