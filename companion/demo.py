@@ -279,26 +279,20 @@ def free_tcp_port() -> int:
 
 
 def daemon_config(world, opts, parameterisation: str, tcp_port: int, zenoh_port: int, map_dir: Path) -> dict:
-    """The service's configuration for one run (written to ``<run>/daemon.yaml``)."""
-    from companion.config import SimConfig
+    """The service's configuration for one run (written to ``<run>/daemon.yaml``): what the scenario's
+    circuit implies (companion/quality/scenarios.py, shared with the scenario suite), the demo's
+    own links and folders, then the scenario's ``service:`` settings, ``--config`` and ``--set``."""
+    from companion.quality.scenarios import circuit_settings, merge_layers
 
-    c = world.circuit
-    sim = SimConfig()
-    return {
-        "link": {"connection": f"tcp:127.0.0.1:{tcp_port}"},
-        # The simulator (ArduPilot flavour) sends no attitude covariance: tell the service the attitude
-        # sigmas it injects, as config/sitl.yaml does (docs/mavlink.md, floors).
-        "nav": {"attitude_sigma_floor_deg": float(sim.nav_tilt_sigma_deg), "yaw_sigma_floor_deg": float(sim.nav_yaw_sigma_deg)},
-        "camera": {"source": "synthetic", "rate_hz": opts.camera_rate},
-        "mapper": {"parameterisation": parameterisation},
-        "avoidance": {"clearance_m": float(world.clearance_m), "nominal_alt_m": float(c.altitude_agl_m),
-                      **({"enabled": False} if opts.no_avoid else {})},
-        "control": {"commanding_enabled": True, "cruise_speed_mps": float(c.speed_mps),
-                    "waypoints_ne_m": [[float(n), float(e)] for n, e in c.waypoints_ne_m]},
-        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{zenoh_port}"], "vehicle_name": "demo"},
-        "persistence": {"directory": str(map_dir)},
-        "sim": {"scenario": opts.scenario, "speedup": float(opts.speedup), "seed": int(opts.seed)},
-    }
+    data = circuit_settings(world, opts.scenario, parameterisation, int(opts.seed), float(opts.camera_rate))
+    data["link"] = {"connection": f"tcp:127.0.0.1:{tcp_port}"}
+    data["zenoh"] = {"mode": "peer", "listen": [f"tcp/127.0.0.1:{zenoh_port}"], "vehicle_name": "demo"}
+    data["persistence"] = {"directory": str(map_dir)}
+    data["sim"]["speedup"] = float(opts.speedup)
+    if opts.no_avoid:
+        data["avoidance"]["enabled"] = False
+    service = ((f"scenario {world.name!r} service", world.service),) if world.service else ()
+    return merge_layers(data, (*service, *getattr(opts, "overrides", ())))
 
 
 def _stop(proc: subprocess.Popen | None, timeout_s: float) -> dict[str, Any]:
@@ -689,7 +683,7 @@ def write_trajectory(rec: RunRecord, path: Path) -> Path:
     return path
 
 
-OPTION_KEYS = ("scenario", "laps", "speedup", "seed", "no_avoid", "camera_rate")
+OPTION_KEYS = ("scenario", "laps", "speedup", "seed", "no_avoid", "camera_rate", "config", "set")
 
 
 def save_record(rec: RunRecord, path: Path, opts=None) -> Path:
@@ -703,7 +697,7 @@ def save_record(rec: RunRecord, path: Path, opts=None) -> Path:
     meta = {k: getattr(rec, k) for k in ("parameterisation", "status", "engaged_time_s", "wall_s", "complete", "problem",
                                          "daemon_exit", "sim_exit", "ground", "service_laps")}
     if opts is not None:
-        meta["options"] = {k: getattr(opts, k) for k in OPTION_KEYS}
+        meta["options"] = {k: getattr(opts, k, None) for k in OPTION_KEYS}
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     tmp = path.with_name(path.name + ".tmp.npz")
     np.savez_compressed(tmp, **arrays)
@@ -820,6 +814,10 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="mapper feature parameterisation; both = inverse depth, then the Cartesian baseline (default)")
     p.add_argument("--replot", action="store_true",
                    help="do not fly: rebuild metrics.json and the figures from the runs saved in --output")
+    p.add_argument("--config", metavar="FILE",
+                   help="service configuration for the run (YAML, partial; over the scenario's own settings)")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
+                   help="one service setting for the run, e.g. camera.mount_pitch_deg=-30 (repeatable; after --config)")
     p.add_argument("--camera-rate", type=float, default=CAMERA_RATE_HZ, metavar="HZ",
                    help=f"synthetic camera rate in simulated Hz (default {CAMERA_RATE_HZ:g})")
 
@@ -838,9 +836,16 @@ def _check_options(args: argparse.Namespace) -> None:
 def main(args: argparse.Namespace) -> int:
     from drivers.sim.world import World
 
+    from companion.quality.scenarios import flight_config, override_layers, world_for
+
     try:
         _check_options(args)
         world = World.load(args.scenario)
+        # --config / --set are validated like `companion run`'s configuration before anything starts;
+        # the figures are then judged against the circuit the service was told to fly
+        args.overrides = override_layers(getattr(args, "config", None), getattr(args, "set", None))
+        world = world_for(world, flight_config(world, args.scenario, "inverse_depth", args.seed, args.camera_rate,
+                                               args.overrides))
     except ConfigError as exc:
         print(f"companion demo: {exc}", file=sys.stderr)
         return 2
@@ -866,6 +871,9 @@ def main(args: argparse.Namespace) -> int:
             records[p] = load_record(path)
             for k, v in (records[p].options or {}).items():
                 setattr(args, k, v)  # the figures describe the run as it was flown
+        args.overrides = override_layers(args.config, args.set)
+        world = world_for(World.load(args.scenario), flight_config(World.load(args.scenario), args.scenario, "inverse_depth",
+                                                                   args.seed, args.camera_rate, args.overrides))
     else:
         try:
             for p in params:

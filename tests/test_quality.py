@@ -248,3 +248,42 @@ def test_faint_texture_is_faint():
         spread[contrast] = float(image[160:320, 220:420].std())
     assert spread[1.0] > 10.0
     assert spread[0.25] == pytest.approx(0.25 * spread[1.0], rel=0.15), spread
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--set", "camera.mount_pich_deg=-30"], "unknown key 'camera.mount_pich_deg'"),
+    (["--set", "control.cruise_speed_mps=fast"], "control.cruise_speed_mps"),
+    (["--config", "/nonexistent/service.yaml"], "/nonexistent/service.yaml"),
+])
+def test_demo_refuses_a_wrong_override_in_one_line_before_starting(tmp_path, args, words):
+    proc = subprocess.run([sys.executable, "-m", "companion.cli", "demo", "--output", str(tmp_path / "d"), *args],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 2
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and words in lines[0], proc.stderr
+    assert not (tmp_path / "d" / "runs").exists()
+
+
+def test_demo_service_configuration_layers_in_order(tmp_path):
+    """defaults < the demo's own settings < the scenario's service section < --config < --set."""
+    import argparse
+
+    from companion import demo
+    from companion.config import config_from_dict
+    from companion.quality.scenarios import override_layers, world_for
+
+    cfg_file = tmp_path / "service.yaml"
+    cfg_file.write_text("camera: {mount_pitch_deg: -28.0}\nmapper: {max_features: 70}\n")
+    p = argparse.ArgumentParser()
+    demo.configure_parser(p)
+    a = p.parse_args(["--scenario", "treeline_tall", "--config", str(cfg_file), "--set", "mapper.max_features=90",
+                      "--set", "avoidance.clearance_m=11"])
+    a.overrides = override_layers(a.config, a.set)
+    world = World.load("treeline_tall")
+    world = world_for(world, flight_config(world, a.scenario, "inverse_depth", a.seed, a.camera_rate, a.overrides))
+    cfg = config_from_dict(demo.daemon_config(world, a, "inverse_depth", 5760, 7447, tmp_path / "map"))
+    assert cfg.camera.mount_pitch_deg == -28.0            # --config over the scenario's -35
+    assert cfg.mapper.max_features == 90                  # --set over --config
+    assert cfg.avoidance.clearance_m == 11.0 and world.clearance_m == 11.0  # the demo's figures use it too
+    assert cfg.avoidance.nominal_alt_m == 18.0 and cfg.control.cruise_speed_mps == 8.0  # the circuit's
+    assert cfg.link.connection == "tcp:127.0.0.1:5760" and cfg.control.commanding_enabled  # the demo's own

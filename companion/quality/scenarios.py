@@ -11,7 +11,9 @@ value is a :class:`ConfigError` naming where it came from and the dotted key.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import dataclasses
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import yaml
@@ -72,8 +74,44 @@ def flight_config(world, scenario: str, parameterisation: str, seed: int, camera
     data = circuit_settings(world, scenario, parameterisation, seed, camera_rate_hz)
     service = getattr(world, "service", None)
     layers = ((f"scenario {world.name!r} service", service),) if service else ()
-    cfg = config_from_dict(data, f"scenario {world.name!r}")
-    for source, extra in (*layers, *overrides):
+    return config_from_dict(merge_layers(data, (*layers, *overrides)), f"scenario {world.name!r}")
+
+
+def override_layers(config_file: str | None, sets: Sequence[str] | None) -> tuple[tuple[str, dict], ...]:
+    """``--config FILE`` (a partial configuration, YAML) then each ``--set section.key=value``, in
+    order, as ``(source, nested mapping)`` layers for :func:`flight_config` / :func:`merge_layers`."""
+    layers: list[tuple[str, dict]] = []
+    if config_file:
+        path = Path(config_file)
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read configuration: {exc.strerror or exc}") from exc
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: the top level must be a mapping of sections")
+        layers.append((str(path), data))
+    for expr in sets or ():
+        layers.append((f"--set {expr}", parse_set(expr)))
+    return tuple(layers)
+
+
+def merge_layers(data: dict, layers: Sequence[tuple[str, Mapping]]) -> dict:
+    """``data`` (a configuration as a nested dict) with each layer merged over it in order, each
+    step validated (ConfigError naming the layer's source and the dotted key)."""
+    for source, extra in layers:
         data = _merge(data, extra)
-        cfg = config_from_dict(data, source)
-    return cfg
+        config_from_dict(data, source)
+    return data
+
+
+def world_for(world, cfg: CompanionConfig):
+    """``world`` with its circuit's altitude, speed, clearance and route taken from ``cfg`` (after
+    overrides), so that figures judged against the circuit use what the service was told."""
+    from drivers.sim.world import World
+
+    c = dataclasses.replace(world.spec.circuit, altitude_agl_m=cfg.avoidance.nominal_alt_m,
+                            speed_mps=cfg.control.cruise_speed_mps, clearance_m=cfg.avoidance.clearance_m,
+                            waypoints_ne_m=tuple(tuple(w) for w in cfg.control.waypoints_ne_m))
+    return World(dataclasses.replace(world.spec, circuit=c), world.source, world.service)

@@ -23,8 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
-
 from companion.config import ConfigError
 
 PARAMETERISATIONS = ("inverse_depth", "cartesian")
@@ -57,24 +55,9 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def _overrides(args) -> tuple[tuple[str, dict], ...]:
-    """The service overrides of every flight: ``--config FILE`` then each ``--set``, in order."""
-    from companion.quality.scenarios import parse_set
+    from companion.quality.scenarios import override_layers
 
-    layers: list[tuple[str, dict]] = []
-    if args.config:
-        path = Path(args.config)
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot read configuration: {exc.strerror or exc}") from exc
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
-        if not isinstance(data, dict):
-            raise ConfigError(f"{path}: the top level must be a mapping of sections")
-        layers.append((str(path), data))
-    for expr in args.set or ():
-        layers.append((f"--set {expr}", parse_set(expr)))
-    return tuple(layers)
+    return override_layers(args.config, args.set)
 
 
 # --------------------------------------------------------------------------------------------
