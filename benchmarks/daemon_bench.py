@@ -1,4 +1,4 @@
-"""The daemon while mapping: frame-to-setpoint latency and control-loop jitter (issue 7).
+"""The daemon while mapping: frame-to-setpoint latency and control-loop jitter.
 
 Three processes on this machine, as a user would run them:
 

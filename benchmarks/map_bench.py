@@ -1,4 +1,4 @@
-"""Terrain map figures (issue 7): inserting 1,000 converged points, an avoidance query over a 100 m
+"""Terrain map figures: inserting 1,000 converged points, an avoidance query over a 100 m
 look-ahead, memory per km^2 at 1 m cells (square against strip), and the mapper's per-frame cost
 against the size of the map it reads its depth prior from and writes its points to.
 

@@ -1,6 +1,6 @@
 """Mapper throughput on rendered frames: frames per second at N features, the distance to the
 floor (OpenCV's Harris response alone), the scaling with N, where the time goes, and the batched
-code against the per-feature loop reference (issue 7).
+code against the per-feature loop reference.
 
 Every figure is the whole ``Mapper.step`` (detect -> undistort -> predict -> match -> update ->
 initialise; with ``with_grid`` also the depth prior from the terrain map and the insertion of the
@@ -426,7 +426,7 @@ def compare_whole_step(flight: Flight, n_features: int, frames: int) -> dict:
 
 def dense_matching(z: np.ndarray, g: np.ndarray, S: np.ndarray, cfg) -> tuple:
     """Eqs. 11-12, gate, mutual nearest and exclusion on the dense ``(N, M)`` matrices, as the
-    mapper did them before issue 7's rework (``einsum`` over ``(N, M, 2)`` differences and a
+    mapper did them before the batched matching (``einsum`` over ``(N, M, 2)`` differences and a
     second ``(N, M, 2)`` array for the pixel distances)."""
     from companion.mapper.matching import gate_and_match, inverse_2x2
 

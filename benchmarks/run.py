@@ -1,4 +1,4 @@
-"""``python -m benchmarks.run [--quick]``: every figure of issue 7 in one run.
+"""``python -m benchmarks.run [--quick]``: every performance figure in one run.
 
 Prints tables (median and p99 over repeated runs, the machine) and writes
 ``benchmarks/results.json``. Single-core figures run pinned to core 0 with OpenCV single-threaded;
@@ -165,7 +165,7 @@ NO_MAP = "50 no map"  # the 50-feature mapper without the terrain map, beside th
 def mapper_section(flight, plan: Plan) -> dict:
     """Frames per second at 50 and 300 features and the distance to the Harris floor.
 
-    The step is the issue's: detect + match + update + initialise + grid insert. Each mapper
+    The step is the target's: detect + match + update + initialise + grid insert. Each mapper
     reads its depth prior from its own terrain map and inserts its converged points into it, as
     the daemon does (a fresh map per repeat). The 50-feature mapper without a map (flat-ground
     prior, no insert) runs interleaved beside them, for what the map adds."""
@@ -204,7 +204,7 @@ def scaling_section(flight, plan: Plan) -> list:
 
 
 def profile_section(flight, plan: Plan, with_cprofile: bool) -> dict:
-    """Where the time goes (wall and this thread's CPU time), and the matching before and after issue 7."""
+    """Where the time goes (wall and this thread's CPU time), and the dense matching against the batched candidate pairs."""
     print("\n== Where the time goes (timers around the functions a step calls; mean CPU ms per frame) ==")
     # CPU time of this thread: the shares do not depend on what other processes take from the core
     profiles = {n: mapper_bench.section_profile(flight, n, plan.profile_frames, clock=time.thread_time) for n in (50, 300)}
@@ -220,7 +220,7 @@ def profile_section(flight, plan: Plan, with_cprofile: bool) -> dict:
         if p["not_found"]:
             print(f"  (not timed at {n}: {', '.join(p['not_found'])} - renamed in the mapper?)")
     prop = {n: mapper_bench.matching_comparison(flight, n, 40 if plan.quick else 150) for n in (50, 300)}
-    print("\nmatching (eqs. 10-12 and the exclusion test): dense N x M matrices (as before issue 7) against the "
+    print("\nmatching (eqs. 10-12 and the exclusion test): dense N x M matrices against the "
           "candidate pairs the mapper now uses, same inputs, interleaved:")
     print(table(["features", "dense median ms", "dense p99", "pairs median ms", "pairs p99", "saved ms", "speedup",
                  "same decisions"],
@@ -333,7 +333,7 @@ def median_run(runs: list[dict]) -> dict:
 
 
 def headline_values(details: dict) -> tuple[dict, dict]:
-    """The issue's keys (``TARGETS``) and the supporting figures, from the sections' results."""
+    """The target keys (``TARGETS``) and the supporting figures, from the sections' results."""
     m, loop, mp = details["mapper"], details["batched_vs_loop"], details["map"]
     daemon = details["daemon"].get("default", details["daemon"])
     steady = daemon.get("steady_state") or {}

@@ -1,5 +1,5 @@
 """Soak: the daemon flying the circuit for a long accelerated run, its memory, file descriptors and
-threads sampled over time (issue 8).
+threads sampled over time.
 
 ``python -m benchmarks.soak --minutes 10 [--speedup 20] [--every 10] [--json out.json]``
 

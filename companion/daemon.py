@@ -625,7 +625,7 @@ class Daemon:
         if self.cfg.control.gil_switch_interval_ms > 0:
             # The mapper thread holds Python's lock between its OpenCV calls (~3 ms a frame); a
             # control tick or a frame arriving meanwhile waits until the lock is handed over, after
-            # at most this interval (docs/performance.md, "Session 4").
+            # at most this interval (docs/performance.md, "Control loop").
             sys.setswitchinterval(self.cfg.control.gil_switch_interval_ms * 1e-3)
         if self.cfg.zenoh.enabled:
             from drivers.zenoh_bus import ZenohBus

@@ -4,7 +4,7 @@ The daemon's event loop (MAVLink, the 20 Hz control step, the frame hand-over) s
 the mapper thread, which is busy ~30 % of the time at 30 frames/s. Under normal scheduling a control
 tick that falls while the mapper runs waits until the kernel's scheduler gives the loop's thread
 the core back: the ticks later than 3 ms fell almost all during a mapper step (docs/performance.md,
-"Session 5"). With the loop's thread at a ``SCHED_FIFO`` priority it preempts the mapper as soon as
+"Control loop"). With the loop's thread at a ``SCHED_FIFO`` priority it preempts the mapper as soon as
 its timer fires; the mapper thread stays at normal scheduling, so a busy mapper can never hold the
 loop up, and the loop (which sleeps between ticks) takes only the little time it needs.
 

@@ -14,7 +14,7 @@ What is measured (docs/demo.md):
 * laps: :func:`split_laps` cuts the trajectory each time it comes back to the first waypoint
   after visiting the others in order (each within ``radius_m``);
 * clearance: :func:`min_clearance_over_footprint`, the least height above the true terrain
-  while the vehicle is over the obstacle's footprint (the issue's ``min_clearance_m``);
+  while the vehicle is over the obstacle's footprint (``min_clearance_m``);
 * mapped obstacle height: :func:`mapped_height_over_footprint`, a high quantile (95th
   percentile) of the mapped heights of the footprint's cells that hold at least two points, so
   that one wild cell does not make the building taller; the maximum is reported beside it. A
@@ -456,14 +456,14 @@ def lap_profile(ne: np.ndarray, alt_m: np.ndarray, terrain_fn: TerrainFn, raster
 
 def criteria(laps: list[dict], clearance_m: float, textured_height_m: float, other_laps: list[dict] | None = None,
              roof_height_m: float = math.nan) -> dict:
-    """The issue's and the paper's checks on one run's laps (dicts as the demo writes them:
+    """The demo's criteria and the paper's checks on one run's laps (dicts as the demo writes them:
     ``min_clearance_m``, ``mapped_obstacle_height_m``, ``mapped_in_time``).
 
     * clearance: every lap in which the obstacle was already mapped in time (early enough for
       the law to climb over it, see :func:`mapped_in_time`) keeps at least 0.8 (issue) / 0.9
       (goal) of ``clearance_m``;
     * height: the last lap's mapped height is within 20 % of the textured height (issue), and
-      at least 90 % of it while still within the issue's 20 % (goal; the paper's map reached
+      at least 90 % of it while still within the 20 % criterion (goal; the paper's map reached
       about 75 % of its roof height, which was about its textured height);
     * comparison: this run's height error, averaged over the laps, is smaller than
       ``other_laps``' (the Cartesian baseline), when given: the paper compares the parameterisations

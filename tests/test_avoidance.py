@@ -277,7 +277,7 @@ def test_bad_state_is_refused():
 
 
 def test_command_time(capsys):
-    """Figure for issue 7 (generous bound: catches pathologies, not a benchmark)."""
+    """Query time of the law (generous bound: catches pathologies, not a benchmark)."""
     rng = np.random.default_rng(0)
     grid = TerrainGrid()
     n, e = np.meshgrid(np.arange(-50, 200) + 0.5, np.arange(-60, 60) + 0.5, indexing="ij")

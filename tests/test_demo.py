@@ -2,7 +2,7 @@
 
 Unit tests (no processes): the metrics of companion/report.py on synthetic trajectories and maps.
 End to end: the demo as a user runs it (subprocesses, MAVLink over TCP/UDP loopback, Zenoh),
-with the issue's criteria asserted on its metrics.json.
+with the demo's criteria asserted on its metrics.json.
 """
 
 from __future__ import annotations
@@ -295,8 +295,8 @@ def test_progress_is_plain_lines_when_stderr_is_not_a_terminal(tmp_path):
 # ---- end to end --------------------------------------------------------------------------------
 #
 # Two demos, as a user runs them:
-# * the closed loop (the issue's criteria): inverse depth, 3 laps, the law obeyed;
-# * the same path for both parameterisations (the issue's comparison): `--no-avoid`, 2 laps, so
+# * the closed loop (the demo's criteria): inverse depth, 3 laps, the law obeyed;
+# * the same path for both parameterisations (the paper's comparison): `--no-avoid`, 2 laps, so
 #   that the two maps differ by the parameterisation alone. In the closed loop each run flies where
 #   its own map sends it, and the climb itself shrinks what inverse depth is for (docs/demo.md,
 #   "Inverse depth against Cartesian").
@@ -338,7 +338,7 @@ def _figures(m):
 
 def _check_report(demo, parameterisations, laps):
     """The plumbing of one demo: every run completes, the service stops cleanly with its map
-    saved, the report holds the issue's keys and readable PNGs."""
+    saved, the report holds the documented keys and readable PNGs."""
     assert demo.proc.returncode == 0, demo.proc.stderr[-2000:]
     m = demo.metrics
     _figures(m)
@@ -378,11 +378,11 @@ def test_demo_closed_loop_run_writes_its_report(closed_loop_run):
 
 
 @pytest.mark.slow
-def test_demo_meets_the_issue_criteria(closed_loop_run):
-    """The issue: once the building is mapped (in time for the law to climb), clearance stays at
-    or above 0.8 of the configured clearance; the mapped building height (last lap) is within 20 %
-    of its textured height. Three laps, as the paper's goal (90 % of the height by lap 3): after two
-    the height sat at 7.2-7.7 m against the 7.2 m bound in session 5's runs."""
+def test_demo_meets_its_criteria(closed_loop_run):
+    """Once the building is mapped (in time for the law to climb), clearance stays at or above 0.8
+    of the configured clearance; the mapped building height (last lap) is within 20 % of its
+    textured height. Three laps, as the paper's goal (90 % of the height by lap 3): after two laps
+    the height sat at 7.2-7.7 m against the 7.2 m bound in the runs measured."""
     m = closed_loop_run.metrics
     assert m is not None, closed_loop_run.proc.stderr[-2000:]
     _figures(m)
@@ -398,9 +398,9 @@ def test_demo_meets_the_issue_criteria(closed_loop_run):
 
 @pytest.mark.slow
 def test_cartesian_maps_the_building_worse_on_the_same_path(same_path_run):
-    """The issue: the Cartesian run maps the building worse. Worse = a larger height error averaged
-    over the laps (report.mean_height_error; the paper compares them lap by lap), both runs flying
-    the same path at the nominal altitude. Session 6, six such demos (2 or 3 laps): inverse depth
+    """The paper's claim: the Cartesian run maps the building worse. Worse = a larger height error
+    averaged over the laps (report.mean_height_error; the paper compares them lap by lap), both runs
+    flying the same path at the nominal altitude. Six such demos (2 or 3 laps) measured inverse depth
     1.34-2.16 m, Cartesian 3.21-4.98 m; the smallest gap 1.24 m."""
     m = same_path_run.metrics
     assert m is not None, same_path_run.proc.stderr[-2000:]

@@ -1,4 +1,4 @@
-"""The mapper's fast paths (issue 7) compute exactly what the straightforward formulas compute.
+"""The mapper's fast paths compute exactly what the straightforward formulas compute.
 
 Each fast path is checked against the plain version on random inputs: candidate pairs against the
 dense N x M distance matrix (same pairs, bit-identical distances, same gating, matching and

@@ -1,4 +1,4 @@
-"""Reliability of the camera path (issue #8): bad frames are counted rejections that the service's status
+"""Reliability of the camera path: bad frames are counted rejections that the service's status
 shows while mapping goes on with the good ones; a camera that vanishes comes back (V4L2 device node that
 disappears, synthetic camera without a pose, recording whose files vanish).
 

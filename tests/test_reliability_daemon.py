@@ -1,4 +1,4 @@
-"""Reliability of the map on disk (issue 8): snapshots that survive SIGKILL, interrupted writes that
+"""Reliability of the map on disk: snapshots that survive SIGKILL, interrupted writes that
 are never half-read, a kept previous generation, and a snapshot directory that fails (full,
 read-only, not a directory) while the daemon keeps flying and mapping.
 

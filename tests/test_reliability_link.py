@@ -1,4 +1,4 @@
-"""Reliability and security of the autopilot link (issue #8): bad input, faults, signing, commanding.
+"""Reliability and security of the autopilot link: bad input, faults, signing, commanding.
 
 Bad input: every byte fed to the link is either part of a decoded message or inside a counted
 rejection; the valid frames around damaged ones still get through; absurd values never reach the

@@ -1,4 +1,4 @@
-"""Reliability of the Zenoh side (issue 8): garbage on the wire is rejected and counted, and a
+"""Reliability of the Zenoh side: garbage on the wire is rejected and counted, and a
 daemon whose Zenoh peer or router is unreachable keeps mapping, says the link is down, and
 reconnects and publishes when something appears on the endpoint.
 

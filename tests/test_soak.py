@@ -1,4 +1,4 @@
-"""Soak, short version (issue 8): the daemon flies the circuit at 8x speed for 42 wall seconds
+"""Soak, short version: the daemon flies the circuit at 8x speed for 42 wall seconds
 (about 6 simulated minutes, two or three laps) while its memory, file descriptors and threads are sampled
 from /proc every 3 s. ``python -m benchmarks.soak --minutes 10`` is the long run
 (docs/reliability.md has its figures).

@@ -448,7 +448,7 @@ def test_memory_grows_with_observed_area_not_bounding_box():
 
 
 def test_insert_and_query_speed(capsys):
-    """Figures for issue 7 (not a benchmark: generous bounds catch only pathologies)."""
+    """Timing figures (not a benchmark: generous bounds catch only pathologies)."""
     rng = np.random.default_rng(3)
     grid = TerrainGrid()
     cover(grid, (-50, 150), (-50, 50))

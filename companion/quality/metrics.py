@@ -344,6 +344,7 @@ def run_figures(rec, world) -> dict[str, Any]:
         "laps_requested": rec.laps_requested,
         "speed_flown_mps": _num(np.mean(speeds), 2) if speeds else None,
         "speed_commanded_mps": _num(rec.cfg.control.cruise_speed_mps, 2),
+        "cruise_reached_ne_m": [_num(v, 1) for v in rec.truth_ne_m[0]] if len(rec.t_s) else None,
         "clearance_m": _num(law.clearance_m, 2),
         "nominal_alt_m": _num(law.nominal_alt_m, 2),
         "laps": laps,

@@ -202,6 +202,11 @@ first included, and every obstacle in every lap. The code is companion/quality/m
   holding at least two points, at the end of the second lap, over the obstacle's textured height
   (the part a texture-tracking mapper can see). The table gives the least over the obstacles.
 - **speed flown**: path length over time per lap, mean over the laps (the commanded speed beside it).
+
+The record of a flight starts when the vehicle first reaches its commanded height after take-off
+(`cruise_reached_ne_m` in quality.json): the climb-out is the autopilot's take-off, flown while
+the service already commands the route (above `control.min_alt_m`). Every scenario's first
+obstacle lies far enough along the first leg to be approached at the commanded height.
 """
 
 
