@@ -421,7 +421,11 @@ def main(args: argparse.Namespace) -> int:
         "runs": runs,
     }
     fig_dir = out / "quality"
-    figures = worst_first_pass_figures(results, fig_dir, "quality/")
+    try:
+        figures = worst_first_pass_figures(results, fig_dir, "quality/")
+    except RuntimeError as exc:  # matplotlib (the desk extra) missing: the tables still stand
+        print(f"companion quality: no pictures: {exc}", file=sys.stderr)
+        figures = {}
     (out / "quality.json").write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
     (out / "quality.md").write_text(markdown(doc, figures))
     for line in headline(runs):
