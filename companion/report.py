@@ -450,7 +450,7 @@ def lap_profile(ne: np.ndarray, alt_m: np.ndarray, terrain_fn: TerrainFn, raster
 
 
 # --------------------------------------------------------------------------------------------
-# Verdicts against the issue and the paper
+# Verdicts against the demo's requirements and the paper
 # --------------------------------------------------------------------------------------------
 
 
@@ -460,9 +460,9 @@ def criteria(laps: list[dict], clearance_m: float, textured_height_m: float, oth
     ``min_clearance_m``, ``mapped_obstacle_height_m``, ``mapped_in_time``).
 
     * clearance: every lap in which the obstacle was already mapped in time (early enough for
-      the law to climb over it, see :func:`mapped_in_time`) keeps at least 0.8 (issue) / 0.9
+      the law to climb over it, see :func:`mapped_in_time`) keeps at least 0.8 (required, the ``issue_*`` keys) / 0.9
       (goal) of ``clearance_m``;
-    * height: the last lap's mapped height is within 20 % of the textured height (issue), and
+    * height: the last lap's mapped height is within 20 % of the textured height (required), and
       at least 90 % of it while still within the 20 % criterion (goal; the paper's map reached
       about 75 % of its roof height, which was about its textured height);
     * comparison: this run's height error, averaged over the laps, is smaller than

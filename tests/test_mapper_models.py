@@ -71,7 +71,7 @@ def test_jacobians_match_central_differences(model):
 
 
 def test_inverse_depth_lever_arm_cancels_in_attitude_jacobian():
-    """The lead's derivation: dh/d(dtheta) = R_nc^T [rho (a - p) + m]x uses the body origin p, not p_c."""
+    """The derivation: dh/d(dtheta) = R_nc^T [rho (a - p) + m]x uses the body origin p, not p_c."""
     rng = np.random.default_rng(3)
     mount = CameraMount.from_euler_deg(0, -45, 0, offset_m=(1.5, 0.2, 0.4))
     pose = random_pose(rng, mount)

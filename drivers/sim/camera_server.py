@@ -5,7 +5,7 @@ step, renders the world from it in a worker thread (the physics goes on meanwhil
 frame with the tick's ``time_boot`` (the exposure, on the autopilot's clock) and sends it to every
 connected client in the format of :mod:`drivers.cameras.stream`. The service reads it with
 ``camera.source: stream``: a camera in its own hardware, as on a vehicle, so the service's
-figures no longer include a renderer sharing its process.
+figures do not include a renderer sharing its process.
 
 A tick that comes while the previous frame is still rendering is skipped (``skipped_ticks``), as
 a camera that cannot keep up drops frames; a client whose socket is still full of older frames
