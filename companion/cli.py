@@ -55,7 +55,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"companion {args.command}: not available in this build yet", file=sys.stderr)
         return 2
     module = importlib.import_module(args._module)
-    return int(module.main(args) or 0)
+    try:
+        return int(module.main(args) or 0)
+    except RuntimeError as exc:
+        from companion.plots import DeskExtraMissing  # only a desk tool's figures raise it
+
+        if not isinstance(exc, DeskExtraMissing):
+            raise
+        print(f"companion {args.command}: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

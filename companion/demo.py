@@ -665,7 +665,10 @@ def comparison_figure(records: dict[str, RunRecord], world, obstacle, path: Path
                                        (CLEARANCE_GOAL * world.clearance_m, f"goal: {CLEARANCE_GOAL:g} x configured",
                                         plots.PALETTE[3])],
                             size=(760, 400))
-        img = np.vstack([cv2.imread(str(a)), cv2.imread(str(b))])
+        parts = [cv2.imread(str(a)), cv2.imread(str(b))]
+        width = max(part.shape[1] for part in parts)  # tight bounding boxes differ by their legends
+        img = np.vstack([cv2.copyMakeBorder(part, 0, 0, 0, width - part.shape[1], cv2.BORDER_CONSTANT,
+                                            value=plots.WHITE) for part in parts])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return plots.write_png(path, img)
@@ -846,7 +849,8 @@ def main(args: argparse.Namespace) -> int:
         args.overrides = override_layers(getattr(args, "config", None), getattr(args, "set", None))
         world = world_for(world, flight_config(world, args.scenario, "inverse_depth", args.seed, args.camera_rate,
                                                args.overrides))
-    except ConfigError as exc:
+        plots.require()  # before the flight, not at its figures
+    except (ConfigError, plots.DeskExtraMissing) as exc:
         print(f"companion demo: {exc}", file=sys.stderr)
         return 2
     obstacle = pick_obstacle(world)
