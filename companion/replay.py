@@ -32,6 +32,7 @@ from companion.config import CompanionConfig, ConfigError
 from companion.map_metrics import CellHeights, compare, bin_heights, dense_heights, map_cells, read_reference_csv
 from companion.mapper import Mapper
 from companion.mapper.features import HarrisDetector
+from companion import plots
 from companion.plots import height_map
 from companion.recordings import (
     Overrides,
@@ -376,6 +377,7 @@ def _fail(message: str) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
+    plots.require()  # the figures need the desk extra: say so before the replay, not after it
     path = Path(args.recording).expanduser()
     if args.max_frames is not None and args.max_frames < 1:
         return _fail(f"--max-frames must be at least 1, got {args.max_frames}")

@@ -111,14 +111,16 @@ def test_the_service_import_path_never_loads_matplotlib():
     assert out == ["False", "True"], out
 
 
-def test_a_desk_tool_without_matplotlib_says_how_to_install_it(tmp_path):
-    """matplotlib hidden by a module that refuses to load: the demo exits 2 with one line."""
+@pytest.mark.parametrize("command", [["demo", "--output", "out"], ["replay", "no-such-recording"]])
+def test_a_desk_tool_without_matplotlib_says_how_to_install_it(tmp_path, command):
+    """matplotlib hidden by a module that refuses to load: the desk tool exits 2 with one line,
+    before its work."""
     blocker = tmp_path / "block"
     blocker.mkdir()
     (blocker / "matplotlib.py").write_text("raise ModuleNotFoundError(\"No module named 'matplotlib'\", name='matplotlib')\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(blocker), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.run([sys.executable, "-m", "companion.cli", "demo", "--output", str(tmp_path / "out")],
-                          capture_output=True, text=True, timeout=120, env=env)
+    proc = subprocess.run([sys.executable, "-m", "companion.cli", *command], capture_output=True, text=True,
+                          timeout=120, env=env, cwd=tmp_path)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "pip install 'companion[desk]'" in lines[0], proc.stderr
