@@ -50,7 +50,7 @@ from companion.geometry import camera_from_config, quat_to_matrix  # noqa: E402
 from companion.guidance import WaypointGuidance  # noqa: E402
 from companion.mapper import Mapper  # noqa: E402
 from companion.mapper.features import HarrisDetector, as_gray  # noqa: E402
-from companion.messages import NavState, TerrainPoints  # noqa: E402
+from companion.messages import TerrainPoints  # noqa: E402
 from companion.navigation import NavAssembler  # noqa: E402
 from companion.quality import engine  # noqa: E402
 from companion.terrain.grid import TerrainGrid  # noqa: E402
@@ -246,14 +246,7 @@ def fly(spec: RunSpec) -> RunResult:
     assert _command(ap, link, mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
     assert _command(ap, link, mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, spec.altitude_m) == mav.MAV_RESULT_ACCEPTED
 
-    def feed(names: tuple[int, ...]) -> NavState | None:
-        nav = None
-        for msg_id in names:
-            msg = ap.build(msg_id)
-            if msg is not None:
-                out = assembler.update(msg, ap.t_s)
-                nav = out if out is not None else nav
-        return nav
+    feed = engine.nav_feed(ap, assembler)
 
     # Track each feature's world points: id -> [first truth (3,), max spread, boundary, n, init range error]
     tracks: dict[int, list] = {}

@@ -191,12 +191,17 @@ def test_quality_quick_subset_runs_end_to_end(tmp_path):
     (["--seeds", "x"], "--seeds"),
 ])
 def test_quality_refuses_a_wrong_setting_in_one_line_before_flying(tmp_path, args, words):
-    proc = subprocess.run([sys.executable, "-m", "companion.cli", "quality", "--output", str(tmp_path / "q"), *args],
-                          capture_output=True, text=True, timeout=120, cwd=ROOT)
+    refuses_in_one_line(["quality", "--output", str(tmp_path / "q"), *args], words)
+    assert not (tmp_path / "q" / "quality.json").exists()
+
+
+def refuses_in_one_line(command: list[str], words: str) -> None:
+    """``companion <command>`` exits 2 with one line on stderr that contains ``words``."""
+    proc = subprocess.run([sys.executable, "-m", "companion.cli", *command], capture_output=True, text=True,
+                          timeout=120, cwd=ROOT)
     assert proc.returncode == 2
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and words in lines[0], proc.stderr
-    assert not (tmp_path / "q" / "quality.json").exists()
 
 
 def test_overrides_apply_in_order_and_a_scenario_carries_its_settings():
@@ -256,11 +261,7 @@ def test_faint_texture_is_faint():
     (["--config", "/nonexistent/service.yaml"], "/nonexistent/service.yaml"),
 ])
 def test_demo_refuses_a_wrong_override_in_one_line_before_starting(tmp_path, args, words):
-    proc = subprocess.run([sys.executable, "-m", "companion.cli", "demo", "--output", str(tmp_path / "d"), *args],
-                          capture_output=True, text=True, timeout=120, cwd=ROOT)
-    assert proc.returncode == 2
-    lines = [line for line in proc.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and words in lines[0], proc.stderr
+    refuses_in_one_line(["demo", "--output", str(tmp_path / "d"), *args], words)
     assert not (tmp_path / "d" / "runs").exists()
 
 

@@ -135,6 +135,21 @@ def velocity_setpoint(v_ned: np.ndarray, yaw: float | None):
         0, 0, 0, 0.0 if yaw is None else float(yaw), 0))
 
 
+def nav_feed(ap, assembler: NavAssembler) -> Callable[[tuple[int, ...]], NavState | None]:
+    """``feed(message ids)``: the simulated vehicle builds each message now and the service's
+    NavAssembler takes it, as the autopilot link would; the last state assembled (None if none)."""
+    def feed(ids: tuple[int, ...]) -> NavState | None:
+        nav = None
+        for msg_id in ids:
+            msg = ap.build(msg_id)
+            if msg is not None:
+                got = assembler.update(msg, ap.t_s)
+                nav = got if got is not None else nav
+        return nav
+
+    return feed
+
+
 def footprint_cell_centres(polygon: np.ndarray, cell_m: float, margin_m: float) -> np.ndarray:
     """(K, 2) centres of the grid cells within ``margin_m`` of the polygon (inside or near an edge)."""
     lo = np.floor((polygon.min(axis=0) - margin_m) / cell_m)
@@ -205,14 +220,7 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
     ap = ArduPilotCopter(cfg.sim, seed=seed)
     link = _Link()
 
-    def feed(ids: tuple[int, ...]) -> NavState | None:
-        nav = None
-        for msg_id in ids:
-            msg = ap.build(msg_id)
-            if msg is not None:
-                got = assembler.update(msg, ap.t_s)
-                nav = got if got is not None else nav
-        return nav
+    feed = nav_feed(ap, assembler)
 
     try:
         ap.run_for(max(0.5, cfg.sim.origin_delay_s + cfg.sim.gps_delay_s + 0.2))  # EKF origin, GPS use
