@@ -307,8 +307,10 @@ def random_features(rng, n):
 @given(SEEDS, st.integers(0, 40))
 def test_shared_ray_directions_equal_each_function_computing_its_own(seed, n):
     """The step computes eq. 3's direction terms once (inverse_depth.ray_directions); the drift
-    Jacobian, the prediction and eq. 5 given them equal the same functions computing their own,
-    to the bit, also on a subset (the visible features)."""
+    Jacobian, the prediction and eq. 5 given them equal the same functions computing their own:
+    to the bit on the same features; on a subset (the visible features) to the last bit or two,
+    since the terms were computed over the whole batch, and NumPy's vectorised loops may round
+    a batch of one differently from a longer one (4e-16 relative seen)."""
     from companion.geometry import camera_from_config
     from companion.config import CompanionConfig
     from companion.mapper import inverse_depth as idp
@@ -332,8 +334,8 @@ def test_shared_ray_directions_equal_each_function_computing_its_own(seed, n):
     front = np.flatnonzero(h_c[:, 0] > 0)
     C_x, C_y = idp.measurement_jacobian(y[front], R_ref[front], pose, camera, h_c[front], d.take(front))
     C_x0, C_y0 = idp.measurement_jacobian(y[front], R_ref[front], pose, camera)
-    np.testing.assert_array_equal(C_x, C_x0)
-    np.testing.assert_array_equal(C_y, C_y0)
+    for got, want in ((C_x, C_x0), (C_y, C_y0)):
+        np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13 * float(np.abs(want).max(initial=0.0)))
 
 
 class LooksNonZero(np.ndarray):
