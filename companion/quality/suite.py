@@ -132,8 +132,10 @@ def summarise(runs: list[dict]) -> list[dict[str, Any]]:
         group = [r for r in runs if r["scenario"] == scenario and r["parameterisation"] == param]
         first = _vals(group, lambda r: _lap(r, 0).get("min_clearance_fraction"))
         every = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("min_clearance_fraction"))
-        margin = _vals([lap for r in group for lap in r.get("laps") or []],
-                       lambda lap: None if lap.get("warning_s") is None else lap["warning_s"] - lap["needed_s"])
+        laps_all = [lap for r in group for lap in r.get("laps") or []]
+        margin = _vals(laps_all, lambda lap: None if lap.get("warning_s") is None else lap["warning_s"] - lap["needed_s"])
+        # a lap whose obstacle the map never held has no warning at all: the worst there is
+        never_held = any(lap.get("warning_s") is None and lap.get("needed_s") is not None for lap in laps_all)
         med = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("cruise_excess_median_m"))
         p95 = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("cruise_excess_p95_m"))
         eng = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("engaged_flat_fraction"))
@@ -145,7 +147,8 @@ def summarise(runs: list[dict]) -> list[dict[str, Any]]:
             "complete": sum(1 for r in group if r.get("complete")),
             "first_pass_min_clearance_fraction": min(first) if first else None,
             "min_clearance_fraction": min(every) if every else None,
-            "worst_warning_margin_s": min(margin) if margin else None,
+            "worst_warning_margin_s": None if never_held or not margin else min(margin),
+            "obstacle_never_held": never_held,
             "cruise_excess_median_m": max(med) if med else None,
             "cruise_excess_p95_m": max(p95) if p95 else None,
             "engaged_flat_fraction": max(eng) if eng else None,
@@ -239,7 +242,8 @@ def markdown(doc: dict[str, Any], figures: dict[str, str]) -> str:
         lines.append(
             f"| {s['scenario']} | {s['parameterisation'].replace('_', ' ')} | {s['complete']}/{s['runs']} | "
             f"{_f(s['first_pass_min_clearance_fraction'])} | {_f(s['min_clearance_fraction'])} | "
-            f"{_f(s['worst_warning_margin_s'], '{:.1f}')} | {_f(s['cruise_excess_median_m'], '{:.1f}')} / "
+            f"{'never held' if s.get('obstacle_never_held') else _f(s['worst_warning_margin_s'], '{:.1f}')} | "
+            f"{_f(s['cruise_excess_median_m'], '{:.1f}')} / "
             f"{_f(s['cruise_excess_p95_m'], '{:.1f}')} | {_f(s['engaged_flat_fraction'])} | {s['false_climbs']} | "
             f"{_f(s['flat_bias_m'])} | {_f(s['flat_within_1m'])} | {_f(s['all_rmse_m'])} | "
             f"{_f(s['obstacle_height_lap2_fraction'])} | {_f(s['speed_flown_mps'], '{:.1f}')} / "
