@@ -184,8 +184,15 @@ def covariance_problem(P: np.ndarray, rel_tol: float = 1e-5) -> str | None:
     d = np.diag(P)
     if np.any(d < 0):
         return "negative variance"
-    scale = max(float(d.max(initial=0.0)), 1e-12)
-    if float(np.linalg.eigvalsh(0.5 * (P + P.T)).min()) < -rel_tol * scale:
+    # Judge the correlation matrix D^-1/2 P D^-1/2, not P: a tolerance scaled by the largest variance would let
+    # a huge variance on one axis hide a correlation above 1 between two others.
+    P = 0.5 * (P + P.T)
+    s = np.sqrt(d)
+    known = s > 0
+    if np.any(P[~known] != 0.0):  # an axis with zero variance cannot covary with anything
+        return "covariance not positive semi-definite"
+    C = P[np.ix_(known, known)] / np.outer(s[known], s[known])
+    if C.size and float(np.linalg.eigvalsh(C).min()) < -rel_tol:
         return "covariance not positive semi-definite"
     return None
 

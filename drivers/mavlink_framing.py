@@ -18,7 +18,8 @@ field unpacking):
   rest of a datagram after a truncated frame is searched at once);
 * CRC over the header and payload with the message's CRC_EXTRA; a frame whose message id this
   dialect does not know cannot be checked, so it is accepted as framed only when a start byte (or
-  the datagram end) follows it, and otherwise counted as one bad byte;
+  the datagram end) follows it and no frame that passes its CRC starts inside it, and otherwise
+  counted as one bad byte;
 * signatures (when a key is configured) by :class:`SignatureCheck`, after the CRC.
 
 Every rejection is reported with a bounded category (:data:`CATEGORIES`) so the link can count it.
@@ -194,8 +195,11 @@ class MavlinkFramer:
             return Rejected(_category(reason), reason[:120], 0)
         if msg.get_type().startswith("UNKNOWN_"):
             # No CRC_EXTRA, so no CRC check: believe the framing only if another frame starts right after.
+            # And never when a frame this dialect can check starts inside it (or may, once more bytes come):
+            # random bytes often end on some start byte, and swallowing the valid frame within would lose it.
             after = pos + size
             framed = (after < len(buf) and buf[after] in (V1_START, V2_START)) or (after == len(buf) and packet_end)
+            framed = framed and not self._holds_a_checkable_frame(buf, pos + 1, after, packet_end)
             return Rejected("unknown message id", msg.get_type(), size if framed else 0)
         if self.signing is not None:
             signed = frame[0] == V2_START and bool(frame[2] & IFLAG_SIGNED)  # MAVLink 1 cannot be signed
@@ -203,6 +207,25 @@ class MavlinkFramer:
             if problem:  # a genuine frame (its CRC is right) that is not acceptable: skip all of it
                 return Rejected(problem, f"{msg.get_type()} from {msg.get_srcSystem()}/{msg.get_srcComponent()}", size)
         return msg
+
+
+    def _holds_a_checkable_frame(self, buf: bytearray, lo: int, hi: int, packet_end: bool) -> bool:
+        """Whether a start byte in ``buf[lo:hi]`` begins a frame that passes its CRC, or one still incomplete."""
+        q = _next_start(buf, lo)
+        while 0 <= q < hi:
+            size = _frame_size(buf, q)
+            if size is None or (size > 0 and q + size > len(buf)):
+                if not packet_end:
+                    return True  # cannot tell yet: do not swallow it
+            elif size > 0:
+                try:
+                    inner = self._decoder.decode(bytearray(buf[q : q + size]))
+                except Exception:  # bad CRC or impossible payload: not a frame
+                    inner = None
+                if inner is not None and not inner.get_type().startswith("UNKNOWN_"):
+                    return True
+            q = _next_start(buf, q + 1)
+        return False
 
 
 def _next_start(buf: bytearray, pos: int) -> int:

@@ -148,6 +148,21 @@ def test_reported_covariance_unknown_nan_offdiag_and_problems():
     assert covariance_problem(np.diag([1.0, np.inf])) == "non-finite covariance"
 
 
+def test_a_huge_variance_does_not_hide_a_correlation_above_one():
+    """Judged on the correlation matrix: a vertical variance of 1e18 must not excuse a horizontal correlation of
+    -2.3 (found by the link fuzz), while a rank-deficient but valid matrix and float32 rounding pass."""
+    P = np.diag([0.01, 0.01, 1.5e18])
+    P[0, 1] = P[1, 0] = -0.0234
+    assert covariance_problem(P) == "covariance not positive semi-definite"
+    P[0, 1] = P[1, 0] = 0.01  # correlation exactly 1: singular, still a covariance
+    assert covariance_problem(P) is None
+    assert covariance_problem(P.astype(np.float32).astype(float)) is None
+    zero_axis = np.diag([0.0, 1.0])
+    assert covariance_problem(zero_axis) is None
+    zero_axis[0, 1] = zero_axis[1, 0] = 1e-3  # a zero variance cannot covary
+    assert covariance_problem(zero_axis) == "covariance not positive semi-definite"
+
+
 @settings(deadline=None, max_examples=50)
 @given(seed=st.integers(0, 2**32 - 1), floor=st.floats(0.0, 2.0))
 def test_floors_raise_marginals_and_keep_psd(seed, floor):

@@ -36,6 +36,7 @@ from companion.navigation import MAX_FUTURE_S
 from drivers.autopilot import AutopilotLink
 from drivers.mavlink_framing import CATEGORIES, MavlinkFramer, Rejected, SignatureCheck, signature_timestamp
 from tests.test_autopilot_link import Peer, make_cfg, running, until
+from tests.test_reliability_daemon import ManualClock
 
 AHEAD_S = 321.0  # the scripted autopilot booted this long before the companion clock started
 NAN, INF = float("nan"), float("inf")
@@ -151,7 +152,9 @@ def mutate(kind: str, ap: Autopilot, t: float, rng: random.Random) -> bytes:
             frame[10 + rng.randrange(max(1, len(frame) - 12))] = rng.getrandbits(8)
         return bytes(fix_crc(frame))
     if kind == "truncated":
-        return bytes(frame[: rng.randrange(1, len(frame))])
+        # Never cut just before a start byte: the next frame's start byte would complete the original frame.
+        cut = rng.choice([k for k in range(1, len(frame)) if frame[k] not in (0xFD, 0xFE)])
+        return bytes(frame[:cut])
     if kind in ("wrong length", "wrong length, CRC fixed"):
         frame[1] = (frame[1] + rng.randint(1, 254)) % 256
         return bytes(fix_crc(frame)) if kind.endswith("fixed") else bytes(frame)
@@ -216,7 +219,8 @@ def assert_states_sane(accepted: list, floors: np.ndarray) -> None:
         assert nav.is_finite()
         assert abs(np.linalg.norm(nav.quaternion_wxyz) - 1.0) < 1e-9
         P = nav.covariance
-        assert np.allclose(P, P.T) and np.linalg.eigvalsh(P).min() > -1e-9
+        s = np.sqrt(np.diag(P))  # judged as correlations: a variance of 1e38 on one axis is legal, and unscaled
+        assert np.allclose(P, P.T) and np.linalg.eigvalsh(P / np.outer(s, s)).min() > -1e-9  # eigvalsh would drown
         assert np.all(np.diag(P) >= floors**2 - 1e-12)
         assert np.abs(nav.position_ned_m).max() <= 1e7
         assert nav.t_s <= pushed_at + MAX_FUTURE_S
@@ -338,22 +342,34 @@ def offline_link(**changes) -> AutopilotLink:
     return AutopilotLink(make_cfg("udpin:127.0.0.1:0", **changes), Clock())
 
 
+FUZZ_FRAMES = 3000
+
+
 @pytest.mark.parametrize("datagrams", [False, True], ids=["stream", "datagrams"])
 def test_fuzz_into_the_link_never_loses_a_valid_frame_or_corrupts_the_state(datagrams):
-    """Seeded and time-bounded: mutated frames of the messages the link uses, each followed by a sentinel frame,
-    among a valid 50 Hz stream. Invariants: no exception, every sentinel decoded (none lost), the buffer only ever
-    holds sane states, no spurious reboot, and after the fuzz a valid state is accepted at once."""
-    rng = random.Random(20240 + datagrams)
+    """Seeded and count-bounded, on a stepped clock (the same bytes and times on every machine): mutated frames of
+    the messages the link uses, each followed by a sentinel frame, among a valid 50 Hz stream. Invariants: no
+    exception, every sentinel decoded (none lost), the buffer only ever holds sane states, no spurious reboot, and
+    after the fuzz a valid state is accepted at once.
+
+    MAVLink's CRC is 16 bits: about one bad candidate frame in 65536 passes it and is then indistinguishable from a
+    valid frame, swallowing what follows. Over 60 seeds x 2 framings x 3000 frames that happened twice; the
+    seeds here are fixed, so the outcome is reproducible."""
+    fuzz_link(20240 + datagrams, FUZZ_FRAMES, datagrams)
+
+
+def fuzz_link(seed: int, frames: int, datagrams: bool) -> None:
+    rng = random.Random(seed)
     ap = Autopilot()
-    link = offline_link()
+    clock = ManualClock()  # the fuzz's outcome must not depend on the machine's speed
+    link = AutopilotLink(make_cfg("udpin:127.0.0.1:0"), clock)
     accepted = record_pushes(link)
-    clock = link.clock
     link._on_bytes(ap.frame("HEARTBEAT", clock.now()), datagrams)
     link._on_bytes(ap.frame("SYSTEM_TIME", clock.now()), datagrams)
     tried = Counter()
-    deadline = time.monotonic() + 1.5
     i = 0
-    while time.monotonic() < deadline:
+    while i < frames:
+        clock.t += 0.02  # a 50 Hz stream
         t = clock.now()
         legit = ap.frame("LOCAL_POSITION_NED", t) + ap.frame("ATTITUDE_QUATERNION", t)
         if i % 10 == 0:
@@ -373,7 +389,7 @@ def test_fuzz_into_the_link_never_loses_a_valid_frame_or_corrupts_the_state(data
     for _ in range(3):  # complete any candidate frame still waiting for bytes
         link._on_bytes(ap.frame("HEARTBEAT", clock.now()) * 12, datagrams)
     st = link.status()
-    print(f"\nfuzz ({'datagrams' if datagrams else 'stream'}): {i} mutated frames in 1.5 s ({dict(tried)}); "
+    print(f"\nfuzz ({'datagrams' if datagrams else 'stream'}): {i} mutated frames ({dict(tried)}); "
           f"{len(states(accepted))} states accepted; rejected {st['rejected']}; ignored {st['link']['ignored_sources']}")
     assert link.rates.counts.get("NAMED_VALUE_INT", 0) == i, "a valid frame was lost"
     assert link.handler_errors == {} and not any(k.startswith("wire: framing error") for k in st["rejected"])
@@ -384,6 +400,7 @@ def test_fuzz_into_the_link_never_loses_a_valid_frame_or_corrupts_the_state(data
     assert_states_sane(accepted, link.assembler.floor_sigmas)
     assert len(states(accepted)) > i // 2  # the valid stream kept producing states throughout
     # After the fuzz a valid state is accepted at once.
+    clock.t += 0.02
     t = clock.now()
     n = len(accepted)
     link._on_bytes(ap.frame("LOCAL_POSITION_NED", t) + ap.frame("ATTITUDE_QUATERNION", t), datagrams)
