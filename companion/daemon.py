@@ -129,6 +129,18 @@ class FrameQueue:
             self._cond.notify_all()
 
 
+def frame_status(origin, flavour: str) -> dict[str, Any]:
+    """Where the map's local frame lies on the Earth (docs/zenoh.md, "Status"; companion/geodesy.py):
+    the EKF origin as the autopilot reported it, and the autopilot's mapping between local offsets
+    and latitude/longitude (``projection``, None until the autopilot is known)."""
+    return {
+        "axes": "NED",
+        "origin": None if origin is None else {
+            "lat_deg": origin.lat_deg, "lon_deg": origin.lon_deg, "alt_m": origin.alt_m, "source": origin.source},
+        "projection": flavour if flavour in ("ardupilot", "px4") else None,
+    }
+
+
 class Daemon:
     """The running service. Build it from a validated config, then ``await run()``."""
 
@@ -549,6 +561,7 @@ class Daemon:
                 "step_ms": self.step_ms.summary(), "step_cpu_ms": self.step_cpu_ms.summary(),
             },
             "map": {**grid, "rejections": dict(self.grid_rejections)},
+            "frame": frame_status(self.link.assembler.origin, self.link.flavour),
             "avoidance": None if self.last_command is None else {
                 "engaged": self.last_command.engaged, "climb_rate_mps": round(self.last_command.climb_rate_mps, 3),
             },

@@ -33,6 +33,7 @@ naming the file and what is wrong.
 from __future__ import annotations
 
 import bisect
+import difflib
 import math
 import re
 import shutil
@@ -432,9 +433,9 @@ class PoseTable:
         if n == 0:
             return NavLookup(None, "no poses")
         if t < self._t[0] - self.extrapolate_s:
-            return NavLookup(None, f"{self._t[0] - t:.3f} s before the first pose")
+            return NavLookup(None, f"{self._t[0] - t:.3f} s before the first pose (nav.buffer_extrapolate_s {self.extrapolate_s:.3f} s)")
         if t > self._t[-1] + self.extrapolate_s:
-            return NavLookup(None, f"{t - self._t[-1]:.3f} s after the last pose")
+            return NavLookup(None, f"{t - self._t[-1]:.3f} s after the last pose (nav.buffer_extrapolate_s {self.extrapolate_s:.3f} s)")
         i = bisect.bisect_left(self._t, t)
         if i < n and self._t[i] == t:
             a = b = i
@@ -445,7 +446,8 @@ class PoseTable:
         else:
             a, b = i - 1, i
             if self._t[b] - self._t[a] > self.max_gap_s:
-                return NavLookup(None, f"gap of {self._t[b] - self._t[a]:.3f} s in the poses (limit {self.max_gap_s:.3f} s)")
+                return NavLookup(None, f"gap of {self._t[b] - self._t[a]:.3f} s in the poses "
+                                       f"(limit nav.buffer_max_gap_s {self.max_gap_s:.3f} s)")
         if a == b:
             p_c, q = self.p_c[a], self.q_nc[a]
         else:
@@ -507,6 +509,7 @@ def _dedupe_times(t: np.ndarray, *arrays: np.ndarray, source: Path, stats: Recor
 
 
 def _camera_from_mapping(data: dict[str, Any], where: Path) -> PinholeCamera:
+    _check_keys(data, CAMERA_KEYS, where)
     try:
         width, height = int(data["width"]), int(data["height"])
         fx, fy, cx, cy = (float(data[k]) for k in ("fx", "fy", "cx", "cy"))
@@ -532,6 +535,21 @@ def _sigmas(text: list[str]) -> tuple[np.ndarray, np.ndarray]:
     if len(values) == 6:
         return np.asarray(values[:3]), np.radians(values[3:])
     raise ValueError(f"{len(values)} sigma values (2 or 6 expected)")
+
+
+TUM_META_KEYS = ("world_up", "world_north", "scale_m_per_unit", "pose_sigma_m", "pose_sigma_deg", "ground_alt_m",
+                 "association_s", "source")
+CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "distortion")
+
+
+def _check_keys(data: dict, known: tuple[str, ...], where: Path) -> None:
+    """An unknown key is an error naming the file and the nearest known key (a misspelt optional key
+    would otherwise be ignored and its default used without a word)."""
+    for key in data:
+        if key not in known:
+            near = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
+            hint = f" (did you mean '{near[0]}'?)" if near else ""
+            raise RecordingError(f"{where}: unknown key '{key}'{hint}; known keys: {', '.join(known)}")
 
 
 def _meta_float(meta: dict, key: str, default: float, lo: float, where: Path) -> float:
@@ -562,6 +580,7 @@ def open_tum(folder: Path, nav: NavConfig, overrides: Overrides = Overrides(), m
     if not meta_path.is_file():
         raise RecordingError(f"{meta_path}: missing (it declares world_up and scale_m_per_unit; see docs/replay.md)")
     meta = _read_yaml(meta_path)
+    _check_keys(meta, TUM_META_KEYS, meta_path)
     if "world_up" not in meta or "scale_m_per_unit" not in meta:
         raise RecordingError(f"{meta_path}: must declare 'world_up' (x, -x, y, -y, z or -z) and 'scale_m_per_unit'")
     world = WorldFrame.from_up(meta["world_up"], meta.get("world_north"), _meta_float(meta, "scale_m_per_unit", 1.0, 1e-12, meta_path))

@@ -179,6 +179,47 @@ def _count(d: dict[str, int], key: str) -> None:
     d[key] = d.get(key, 0) + 1
 
 
+EXIT_NOTHING_MAPPED = 3  # ran to the end, mapped nothing (1: failed, 2: bad arguments or files)
+
+
+def _top(counts: dict[str, int], examples: dict[str, str]) -> tuple[int, str]:
+    key = max(counts, key=counts.get)
+    return counts[key], examples.get(key, key)
+
+
+def nothing_mapped(m: dict[str, Any], path: Path) -> str | None:
+    """One line saying why a replay mapped nothing (None when it mapped something): the count, the
+    commonest cause with its numbers, and the file or setting to change."""
+    if m["cells_mapped"] > 0:
+        return None
+    listed, ex = m["frames_listed"], m.get("reason_examples", {})
+    if listed == 0:
+        return f"{path}: no frame listed"
+    if m["frames_unreadable"] == listed:
+        n, why = _top(m["image_problems"], {})
+        return f"{path}: no frame mapped: all {listed} frames unreadable ({n} of them: {why}); check the images and camera.yaml"
+    if m["frames_without_nav"] == listed:
+        n, why = _top(m["nav_missing_reasons"], ex)
+        return f"{path}: no frame mapped: all {listed} frames without a pose ({n} of them: {why})"
+    if 2 * m["frames_processed"] <= listed:  # most frames never reached the mapper: say why
+        parts = []
+        for label, counts in (("without a pose", m["nav_missing_reasons"]), ("unreadable", m["image_problems"]),
+                              ("refused", m["refused_reasons"])):
+            if counts:
+                n, why = _top(counts, ex)
+                parts.append(f"{sum(counts.values())} frames {label} ({n} of them: {why})")
+        return f"{path}: {m['frames_processed']} of {listed} frames mapped, nothing in the map: " + "; ".join(parts)
+    mp = m["mapper"]
+    if m["converged_points"] == 0:
+        return (f"{path}: {m['frames_processed']} frames mapped but no feature converged ({mp['matched']} feature updates, "
+                f"{mp['initialised']} features started): too little motion between frames, or too little texture")
+    if mp["points_rejected_invalid"] >= m["converged_points"]:
+        return (f"{path}: all {m['converged_points']} converged points rejected as invalid by the map: coordinates beyond "
+                f"terrain.max_abs_coordinate_m, or non-finite; geo-referenced worlds need a local origin")
+    return (f"{path}: {m['converged_points']} converged points but no cell mapped "
+            f"({mp['points_rejected_outlier']} outliers, {mp['points_rejected_invalid']} invalid)")
+
+
 def run_replay(
     recording: Recording,
     cfg: CompanionConfig,
@@ -207,6 +248,7 @@ def run_replay(
     nav_reasons: dict[str, int] = {}
     image_problems: dict[str, int] = {}
     refused: dict[str, int] = {}
+    examples: dict[str, str] = {}  # reason key -> its first instance, numbers kept
     counts = dict(listed=0, processed=0, without_nav=0, unreadable=0, refused=0)
     sums = dict(measurements=0, matched=0, initialised=0, removed=0, dropped=0, update_rejected=0, converged_points=0,
                 points_inserted=0, points_rejected_invalid=0, points_rejected_outlier=0, prior_fallback=0)
@@ -218,6 +260,7 @@ def run_replay(
         if sample.nav is None:
             counts["without_nav"] += 1
             _count(nav_reasons, reason_key(sample.nav_problem))
+            examples.setdefault(reason_key(sample.nav_problem), sample.nav_problem)
         elif sample.frame is None:
             counts["unreadable"] += 1
             _count(image_problems, sample.image_problem.split(": ", 1)[-1])
@@ -231,6 +274,7 @@ def run_replay(
             if step.rejected_reason:
                 counts["refused"] += 1
                 _count(refused, reason_key(step.rejected_reason))
+                examples.setdefault(reason_key(step.rejected_reason), step.rejected_reason)
             else:
                 counts["processed"] += 1
                 p_c, _ = recording.mount.camera_pose(sample.nav.position_ned_m, sample.nav.R_nb)
@@ -276,6 +320,7 @@ def run_replay(
         },
         "mapper": sums | {"n_active_end": mapper.db.n_active},
         "nav_missing_reasons": nav_reasons,
+        "reason_examples": examples,
         "image_problems": image_problems,
         "refused_reasons": refused,
         "recording": recording.describe(),
@@ -429,10 +474,14 @@ def main(args: argparse.Namespace) -> int:
                         black_level=args.black_level, progress=not args.no_progress, config_source=source)
     m = result.metrics
     fps = m["mapper_fps"]
-    print(f"{m['frames_processed']} frames mapped ({m['frames_without_nav']} without navigation, "
-          f"{m['frames_unreadable']} unreadable, {m['frames_refused']} refused); "
-          f"mapper {fps:.1f} frames/s" if fps else "no frame mapped")
+    print(f"{m['frames_processed']} of {m['frames_listed']} frames mapped ({m['frames_without_nav']} without navigation, "
+          f"{m['frames_unreadable']} unreadable, {m['frames_refused']} refused)"
+          + (f"; mapper {fps:.1f} frames/s" if fps else ""))
     print(f"{m['converged_points']} converged points, {m['cells_mapped']} cells mapped -> {output}")
+    why = nothing_mapped(m, path)
+    if why is not None:
+        print(f"companion replay: {why}", file=sys.stderr)
+        return EXIT_NOTHING_MAPPED
     ref = m.get("reference")
     if ref is not None:
         if ref["rmse_m"] is None:

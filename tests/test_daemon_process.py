@@ -254,6 +254,12 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
     assert rc == 0
     print("\n".join(map(str, track[::20])))
     assert early_climb is not None, "no climb commanded for the building before reaching it"
+    # Where the map lies on the Earth: the EKF origin the simulated ArduPilot reported, and its projection.
+    frame = status["frame"]
+    assert frame["projection"] == "ardupilot" and frame["axes"] == "NED"
+    assert frame["origin"]["source"] == "GPS_GLOBAL_ORIGIN"
+    assert (frame["origin"]["lat_deg"], frame["origin"]["lon_deg"], frame["origin"]["alt_m"]) == pytest.approx(
+        (world.home.lat_deg, world.home.lon_deg, world.home.alt_m), abs=1e-6)
     print(f"climb commanded at north {early_climb[0]:.1f} m (building starts at "
           f"{building.footprint_ne_m[:, 0].min():.0f} m), altitude {early_climb[1]:.1f} m: {early_climb[2]}")
     # The subscriber's tiles against the world's true heights.

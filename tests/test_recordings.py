@@ -9,6 +9,7 @@ import shutil
 import cv2
 import numpy as np
 import pytest
+import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -210,6 +211,26 @@ def test_tum_without_metadata_or_camera_file_is_refused_with_the_file_named(tmp_
         open_recording(folder)
     with pytest.raises(RecordingError, match="not a recording"):
         open_recording(tmp_path)
+
+
+def test_a_misspelt_key_in_meta_or_camera_yaml_is_an_error_naming_the_file_and_the_key(tmp_path):
+    """A misspelt optional key was ignored and its default used without a word."""
+    folder = rs.write_tum(tmp_path / "t", rs.flight(n_frames=2), WorldFrame("z", "x"))
+    meta = yaml.safe_load((folder / "meta.yaml").read_text())
+    (folder / "meta.yaml").write_text(yaml.safe_dump({**meta, "pose_sigma": 0.1}))
+    with pytest.raises(RecordingError) as err:
+        open_recording(folder)
+    assert str(err.value).startswith(f"{folder / 'meta.yaml'}: unknown key 'pose_sigma' (did you mean 'pose_sigma_m'?)")
+    (folder / "meta.yaml").write_text(yaml.safe_dump({**meta, "ground_altitude_m": 2.0}))
+    with pytest.raises(RecordingError, match=r"unknown key 'ground_altitude_m' \(did you mean 'ground_alt_m'\?\)"):
+        open_recording(folder)
+    (folder / "meta.yaml").write_text(yaml.safe_dump(meta))
+    camera = yaml.safe_load((folder / "camera.yaml").read_text())
+    (folder / "camera.yaml").write_text(yaml.safe_dump({**camera, "k1": 0.1}))
+    with pytest.raises(RecordingError, match=r"camera.yaml: unknown key 'k1'; known keys: width, height, fx, fy, cx, cy, distortion"):
+        open_recording(folder)
+    (folder / "camera.yaml").write_text(yaml.safe_dump(camera))
+    assert len(list(open_recording(folder).samples())) == 2  # and the files as written are accepted
 
 
 # --------------------------------------------------------------------------------------------

@@ -13,6 +13,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 import replay_synthetic as rs
 from companion import cli
@@ -21,7 +22,7 @@ from companion.geometry import matrix_to_quat
 from companion.map_metrics import bin_heights, compare, map_cells, read_reference_csv, reference_metrics
 from companion.messages import NavState
 from companion.recordings import WorldFrame, export_tum, open_recording, pose_covariance, recording_config
-from companion.replay import build_mapper, load_reference, run_replay
+from companion.replay import EXIT_NOTHING_MAPPED, build_mapper, load_reference, run_replay
 from companion.terrain.grid import TerrainGrid
 
 # Region of the flight's map, and the accuracy the mapper reaches on it today (measured: median
@@ -196,15 +197,57 @@ def test_command_line_replay_with_reference_progress_and_limits(data, tmp_path, 
 
 
 def test_own_recording_config_is_used_unless_a_config_file_is_given(data, tmp_path, capsys):
-    rc = cli.main(["replay", str(data["companion"]), "-o", str(tmp_path / "o"), "--max-frames", "3", "--no-progress"])
+    rc = cli.main(["replay", str(data["companion"]), "-o", str(tmp_path / "o"), "--max-frames", "15", "--no-progress"])
     assert rc == 0 and capsys.readouterr().err == ""
     m = json.loads((tmp_path / "o" / "metrics.json").read_text())
     assert m["config"]["source"].endswith("meta.yaml")
     (tmp_path / "c.yaml").write_text("mapper:\n  max_features: 30\nterrain:\n  cell_size_m: 0.5\n")
-    rc = cli.main(["replay", str(data["companion"]), "-o", str(tmp_path / "p"), "--max-frames", "3", "--no-progress",
+    rc = cli.main(["replay", str(data["companion"]), "-o", str(tmp_path / "p"), "--max-frames", "15", "--no-progress",
                    "--config", str(tmp_path / "c.yaml")])
     m = json.loads((tmp_path / "p" / "metrics.json").read_text())
     assert rc == 0 and m["config"]["max_features"] == 30 and m["map"]["cell_size_m"] == 0.5
+
+
+def test_a_replay_that_maps_nothing_says_why_on_the_console_and_exits_3(data, tmp_path, capsys):
+    """The user's mistakes that used to give an empty map, exit 0 and nothing on the console."""
+    def replay(folder, *extra):
+        rc = cli.main(["replay", str(folder), "-o", str(tmp_path / f"out{len(extra)}"), "--no-progress", *extra])
+        return rc, capsys.readouterr()
+
+    # Too few frames for a feature to converge.
+    rc, out = replay(data["companion"], "--max-frames", "3")
+    assert rc == EXIT_NOTHING_MAPPED == 3
+    assert out.out.startswith("3 of 3 frames mapped (0 without navigation, 0 unreadable, 0 refused)")
+    assert out.err == (f"companion replay: {data['companion']}: 3 frames mapped but no feature converged "
+                       f"(79 feature updates, 53 features started): too little motion between frames, or too little texture\n")
+    # Every frame unreadable: camera.yaml says 752 pixels wide, the images are 640.
+    folder = rs.write_tum(tmp_path / "wide", rs.flight(n_frames=6), WorldFrame("z", "x"))
+    camera = yaml.safe_load((folder / "camera.yaml").read_text())
+    (folder / "camera.yaml").write_text(yaml.safe_dump({**camera, "width": 752}))
+    rc, out = replay(folder)
+    assert rc == 3
+    assert out.err.startswith(f"companion replay: {folder}: no frame mapped: all 6 frames unreadable (6 of them: ")
+    assert "752" in out.err and "camera.yaml" in out.err
+    # Poses far sparser than the frames: the gap and the setting to change, with their numbers.
+    folder = rs.write_tum(tmp_path / "sparse", rs.flight(n_frames=20), WorldFrame("z", "x"))
+    lines = (folder / "poses.txt").read_text().splitlines()
+    (folder / "poses.txt").write_text("\n".join([lines[0], lines[1], lines[-1]]) + "\n")
+    rc, out = replay(folder)
+    assert rc == 3
+    assert "frames without a pose" in out.err and "gap of " in out.err
+    assert "(limit nav.buffer_max_gap_s 0.500 s)" in out.err
+    # Geo-referenced (UTM-like) coordinates: every converged point is beyond terrain.max_abs_coordinate_m.
+    folder = rs.write_tum(tmp_path / "utm", rs.flight(), WorldFrame("z", "x"))
+    rows = []
+    for line in (folder / "poses.txt").read_text().splitlines():
+        f = line.split()
+        if not line.startswith("#"):
+            f[1], f[2] = repr(float(f[1]) + 5.0e6), repr(float(f[2]) + 4.0e5)
+        rows.append(" ".join(f))
+    (folder / "poses.txt").write_text("\n".join(rows) + "\n")
+    rc, out = replay(folder)
+    assert rc == 3
+    assert "converged points rejected as invalid by the map: coordinates beyond terrain.max_abs_coordinate_m" in out.err
 
 
 def test_export_leaves_out_frames_without_navigation(tmp_path):
