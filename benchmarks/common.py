@@ -22,8 +22,8 @@ import cv2
 import numpy as np
 
 from companion.config import CompanionConfig, MapperConfig, replace
-from companion.geometry import CameraMount, PinholeCamera, camera_from_config, euler_to_matrix, matrix_to_quat, so3_exp
-from companion.messages import NavState
+from companion.method.geometry import CameraMount, PinholeCamera, camera_from_config, euler_to_matrix, matrix_to_quat, so3_exp
+from companion.method.messages import NavState
 
 RATE_HZ = 30.0
 SPEED_MPS = 6.0

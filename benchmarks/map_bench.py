@@ -14,12 +14,12 @@ import time
 import numpy as np
 
 from benchmarks.common import Flight, summary, time_calls
-from companion.avoidance import PullUpLaw
 from companion.config import AvoidanceConfig, TerrainConfig
-from companion.messages import TerrainPoints
-from companion.terrain.grid import TerrainGrid
+from companion.method.avoidance import PullUpLaw
+from companion.method.messages import TerrainPoints
+from companion.method.terrain.grid import TerrainGrid
 
-BYTES_PER_CELL = 20  # height f32, variance f32, count u32, disagreement f32, pending f32 (companion.terrain.grid)
+BYTES_PER_CELL = 20  # height f32, variance f32, count u32, disagreement f32, pending f32 (companion.method.terrain.grid)
 
 
 def converged_points(flight: Flight, n_points: int = 1000, n_features: int = 300) -> TerrainPoints:

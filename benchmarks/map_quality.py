@@ -7,10 +7,10 @@ and fast (one lap of the default circuit in a few seconds):
   point-mass multirotor flown by its position controller, Gauss-Markov navigation error, GPS
   receiver), taken off in GUIDED and flown by the velocity setpoints the daemon would send
   (waypoint guidance along ``World.waypoints_ne_m`` at 6 m/s, vertical speed from
-  :class:`companion.avoidance.PullUpLaw` on the map being built, or a constant altitude);
+  :class:`companion.method.avoidance.PullUpLaw` on the map being built, or a constant altitude);
 * camera: :class:`drivers.sim.renderer.Renderer` at the TRUE camera pose (the vehicle's truth and
   the configured :class:`CameraMount`), 640x480 at 15 Hz, with the sim's sensor noise;
-* navigation: the mapper gets the :class:`NavState` that :class:`companion.navigation.NavAssembler`
+* navigation: the mapper gets the :class:`NavState` that :class:`companion.method.navigation.assembler.NavAssembler`
   builds from the very messages the ArduPilot-flavour simulator sends (LOCAL_POSITION_NED,
   ATTITUDE_QUATERNION, GPS_RAW_INT, EKF_STATUS_REPORT): the estimate (truth + injected error)
   and the covariance the service would have (GPS accuracies + test ratios + floors);
@@ -44,16 +44,16 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from companion import report  # noqa: E402
-from companion.avoidance import PullUpLaw, nominal_climb_rate  # noqa: E402
 from companion.config import CompanionConfig, replace  # noqa: E402
-from companion.geometry import camera_from_config, quat_to_matrix  # noqa: E402
-from companion.guidance import WaypointGuidance  # noqa: E402
-from companion.mapper import Mapper  # noqa: E402
-from companion.mapper.features import HarrisDetector, as_gray  # noqa: E402
-from companion.messages import TerrainPoints  # noqa: E402
-from companion.navigation import NavAssembler  # noqa: E402
+from companion.method.avoidance import PullUpLaw, nominal_climb_rate  # noqa: E402
+from companion.method.geometry import camera_from_config, quat_to_matrix  # noqa: E402
+from companion.method.guidance import WaypointGuidance  # noqa: E402
+from companion.method.mapper import Mapper  # noqa: E402
+from companion.method.mapper.features import HarrisDetector, as_gray  # noqa: E402
+from companion.method.messages import TerrainPoints  # noqa: E402
+from companion.method.navigation.assembler import NavAssembler  # noqa: E402
+from companion.method.terrain.grid import TerrainGrid  # noqa: E402
 from companion.quality import engine  # noqa: E402
-from companion.terrain.grid import TerrainGrid  # noqa: E402
 from drivers.sim.ardupilot import GUIDED, ArduPilotCopter  # noqa: E402
 from drivers.sim.renderer import Renderer, RenderOptions  # noqa: E402
 from drivers.sim.world import World  # noqa: E402

@@ -21,10 +21,10 @@ import numpy as np
 
 from benchmarks import reference_loop
 from benchmarks.common import Flight, mapper_config, summary
-from companion.mapper import Mapper
-from companion.mapper import features as features_module
-from companion.mapper.appearance import FramePatches
-from companion.mapper.features import HarrisDetector
+from companion.method.mapper import Mapper
+from companion.method.mapper import features as features_module
+from companion.method.mapper.appearance import FramePatches
+from companion.method.mapper.features import HarrisDetector
 
 
 def new_mapper(flight: Flight, n_features: int, depth_prior=None) -> Mapper:
@@ -64,7 +64,7 @@ def variant(flight: Flight, n_features: int, grid=None, loop: bool = False) -> V
 
 def fresh_grid(flight: Flight) -> Callable[[], object]:
     """A factory of empty terrain maps of the flight's configuration (one per mapper run)."""
-    from companion.terrain import TerrainGrid
+    from companion.method.terrain import TerrainGrid
 
     return lambda: TerrainGrid.from_config(flight.cfg.terrain)
 
@@ -252,7 +252,7 @@ def section_profile(flight: Flight, n_features: int, frames: int, clock=time.per
     plus the untimed rest: detector selection (greedy distance, bins) and the step's bookkeeping.
     ``clock``: wall time by default; ``time.thread_time`` gives CPU time (robust to the load of
     other processes)."""
-    import companion.mapper.mapper as mapper_module
+    import companion.method.mapper.mapper as mapper_module
 
     n = min(frames, len(flight))
     mapper = new_mapper(flight, n_features)
@@ -319,7 +319,7 @@ def cprofile_top(flight: Flight, n_features: int, frames: int, top: int = 25) ->
 def record_match_inputs(flight: Flight, n_features: int, frames: int) -> list[dict]:
     """Inputs of the match+update part of each step, as the mapper had them: the stored features
     (states, covariances, reference rotations), the camera pose, P_x and the measurements."""
-    from companion.mapper.projection import CameraPose
+    from companion.method.mapper.projection import CameraPose
 
     mapper = new_mapper(flight, n_features)
     cfg = mapper.cfg
@@ -358,7 +358,7 @@ def match_update(model, fns, inp: dict, camera, cfg, R_img) -> tuple:
 
 
 def batched_functions():
-    from companion.mapper import inverse_depth, matching, update
+    from companion.method.mapper import inverse_depth, matching, update
 
     fns = SimpleNamespace(innovation_covariance=matching.innovation_covariance,
                           candidate_pairs=matching.candidate_pairs,
@@ -428,7 +428,7 @@ def dense_matching(z: np.ndarray, g: np.ndarray, S: np.ndarray, cfg) -> tuple:
     """Eqs. 11-12, gate, mutual nearest and exclusion on the dense ``(N, M)`` matrices, as the
     mapper did them before the batched matching (``einsum`` over ``(N, M, 2)`` differences and a
     second ``(N, M, 2)`` array for the pixel distances)."""
-    from companion.mapper.matching import gate_and_match, inverse_2x2
+    from companion.method.mapper.matching import gate_and_match, inverse_2x2
 
     S_inv, ok = inverse_2x2(S)
     e = z[None, :, :] - g[:, None, :]
@@ -443,8 +443,8 @@ def dense_matching(z: np.ndarray, g: np.ndarray, S: np.ndarray, cfg) -> tuple:
 
 
 def pair_matching(z: np.ndarray, g: np.ndarray, S: np.ndarray, cfg) -> tuple:
-    """The same decisions from candidate pairs (``companion.mapper.matching``), as the mapper runs them."""
-    from companion.mapper import matching
+    """The same decisions from candidate pairs (``companion.method.mapper.matching``), as the mapper runs them."""
+    from companion.method.mapper import matching
 
     pairs = matching.candidate_pairs(z, g, S, max(cfg.gate_chi2, cfg.init_exclusion_chi2), cfg.min_distance_px)
     point_idx, meas_idx, ambiguous = matching.gate_and_match_pairs(pairs.point, pairs.meas, pairs.Z, cfg.gate_chi2, len(z))

@@ -18,8 +18,8 @@ Equations (seed 000; docs/mapper.md), for one inverse-depth feature
 - EKF update (eqs. 7-9), feature only, Joseph form with ``R_eff = C_x P_x C_x^T + R``.
 
 Each ``*_one`` function is one feature. The functions without the suffix loop over features and
-take and return the batched code's arrays (same signatures as ``companion.mapper.inverse_depth``,
-``companion.mapper.matching`` and ``companion.mapper.update``), so the benchmark can run the
+take and return the batched code's arrays (same signatures as ``companion.method.mapper.inverse_depth``,
+``companion.method.mapper.matching`` and ``companion.method.mapper.update``), so the benchmark can run the
 mapper with either. Inside the loop over features the distances of one feature to all ``M``
 measurements are one small vector expression (``(M,)``): a double Python loop over features and
 measurements would be slower still, and nobody would write it; the comparison is therefore with the
@@ -34,7 +34,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from companion.mapper import inverse_depth
+from companion.method.mapper import inverse_depth
 
 ANCHOR = slice(0, 3)
 PSI, THETA, RHO = 3, 4, 5
@@ -287,7 +287,7 @@ def loop_model() -> SimpleNamespace:
     return SimpleNamespace(**names)
 
 
-# Names the mapper module imports from companion.mapper.matching / update, replaced for the loop run.
+# Names the mapper module imports from companion.method.mapper.matching / update, replaced for the loop run.
 MAPPER_FUNCTIONS = {
     "innovation_covariance": innovation_covariance,
     "candidate_pairs": candidate_pairs,
@@ -300,7 +300,7 @@ MAPPER_FUNCTIONS = {
 class loop_reference:
     """Context manager: run the mapper on the loop equations. The matching and update functions the
     mapper module calls are swapped for the loops above; ``mapper`` (a
-    :class:`companion.mapper.Mapper` with the inverse-depth parameterisation), if given, also gets
+    :class:`companion.method.mapper.Mapper` with the inverse-depth parameterisation), if given, also gets
     :func:`loop_model` (loop measurement model and Jacobian). Everything is restored on exit.
     Detection, initialisation and bookkeeping stay the mapper's own. Mappers built inside the block
     need ``mapper.model = loop_model()`` (or pass them here).
@@ -309,13 +309,13 @@ class loop_reference:
     comparison would silently be batched against batched)."""
 
     def __init__(self, mapper=None):
-        import companion.mapper.mapper as mapper_module
+        import companion.method.mapper.mapper as mapper_module
 
         if mapper is not None and mapper.cfg.parameterisation != "inverse_depth":
             raise ValueError("the loop reference implements the inverse-depth parameterisation only")
         missing = [name for name in MAPPER_FUNCTIONS if not hasattr(mapper_module, name)]
         if missing:
-            raise RuntimeError(f"companion.mapper.mapper no longer uses {', '.join(missing)}: "
+            raise RuntimeError(f"companion.method.mapper.mapper no longer uses {', '.join(missing)}: "
                                "update benchmarks/reference_loop.py")
         self._module = mapper_module
         self._mapper = mapper

@@ -38,19 +38,19 @@ from typing import Any
 import numpy as np
 
 from companion import realtime
-from companion.avoidance import AvoidanceCommand
-from companion.clock import Clock
 from companion.config import CompanionConfig, ConfigError, load_config
 from companion.config import replace as replace_config
-from companion.control import Controller
-from companion.geometry import camera_from_config
-from companion.mapper import Mapper
 from companion.mapper_process import MapperProcess
-from companion.messages import Frame, NavState
+from companion.method.avoidance import AvoidanceCommand
+from companion.method.control import Controller
+from companion.method.geometry import camera_from_config
+from companion.method.mapper import Mapper
+from companion.method.messages import Frame, NavState
+from companion.method.terrain.codec import encode_tile
+from companion.method.terrain.grid import TerrainGrid
+from companion.method.terrain.persistence import count_known_cells, load_latest, snapshot_bytes, write_snapshot_bytes
 from companion.sdnotify import SystemdNotifier
-from companion.terrain.codec import encode_tile
-from companion.terrain.grid import TerrainGrid
-from companion.terrain.persistence import count_known_cells, load_latest, snapshot_bytes, write_snapshot_bytes
+from drivers.clock import Clock
 
 log = logging.getLogger("companion")
 
@@ -130,7 +130,7 @@ class FrameQueue:
 
 
 def frame_status(origin, flavour: str) -> dict[str, Any]:
-    """Where the map's local frame lies on the Earth (docs/zenoh.md, "Status"; companion/geodesy.py):
+    """Where the map's local frame lies on the Earth (docs/zenoh.md, "Status"; companion/method/geodesy.py):
     the EKF origin as the autopilot reported it, and the autopilot's mapping between local offsets
     and latitude/longitude (``projection``, None until the autopilot is known)."""
     return {
@@ -174,7 +174,7 @@ class Daemon:
                 cfg.mapper, self.camera_model, self.mount, depth_prior=self._depth_prior,
                 default_ground_alt_m=cfg.terrain.default_ground_alt_m, border_px=cfg.camera.border_px,
             )
-        self.controller = Controller(cfg)  # the law and the route (companion/control.py)
+        self.controller = Controller(cfg)  # the law and the route (companion/method/control.py)
         self.notifier = SystemdNotifier()
         self.record_dir = record_dir
         self.frames = FrameQueue(maxlen=2)

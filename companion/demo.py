@@ -499,7 +499,7 @@ def _num(x: Any, digits: int = 3):
 def warning_needed_s(world, obstacle) -> float:
     """The law's time (s) to climb from the nominal altitude to the textured height plus clearance
     (the demo flies the law's default acceleration and climb-rate limits)."""
-    from companion.avoidance import stopping_time
+    from companion.method.avoidance import stopping_time
     from companion.config import AvoidanceConfig
 
     a = AvoidanceConfig()

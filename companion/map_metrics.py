@@ -22,7 +22,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from companion.terrain.grid import TerrainGrid
+from companion.method.terrain.grid import TerrainGrid
 
 Statistic = Literal["mean", "median", "max"]
 _SHIFT = np.int64(1 << 32)

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import CompanionConfig
-from companion.messages import NavState
+from companion.method.messages import NavState
 
 START_TIMEOUT_S = 60.0  # a new interpreter imports NumPy, OpenCV and the mapper (seconds on a small board)
 
@@ -88,8 +88,8 @@ def serve(conn: Connection) -> None:
     """The child's loop: ``("init", cfg, grid)``, then ``("step", nav, shape, dtype, new_buffer)``
     requests (a new buffer's descriptor follows its request) answered ``("ok", MapperStep)`` or
     ``("error", text)``, until ``None`` or the end of the connection."""
-    from companion.geometry import camera_from_config
-    from companion.mapper import Mapper
+    from companion.method.geometry import camera_from_config
+    from companion.method.mapper import Mapper
 
     _, cfg, grid = conn.recv()
     camera, mount = camera_from_config(cfg.camera)
@@ -194,7 +194,7 @@ class MapperProcess:
                 raise MapperProcessError(f"mapper process failed to start ({kind})")
 
     def step(self, nav: NavState, image: np.ndarray):
-        """``Mapper.step(nav, image)`` in the child -> :class:`companion.mapper.MapperStep`. Starts
+        """``Mapper.step(nav, image)`` in the child -> :class:`companion.method.mapper.MapperStep`. Starts
         the child first if it is not running. Raises :class:`MapperProcessError` when the step
         raised in the child or the child died (the next call starts a new one)."""
         image = np.asarray(image)

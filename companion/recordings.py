@@ -47,7 +47,7 @@ import numpy as np
 import yaml
 
 from companion.config import CompanionConfig, ConfigError, NavConfig, config_from_dict
-from companion.geometry import (
+from companion.method.geometry import (
     PAPER_TO_OPENCV,
     CameraMount,
     PinholeCamera,
@@ -55,8 +55,8 @@ from companion.geometry import (
     matrix_to_quat,
     quat_to_matrix,
 )
-from companion.messages import Frame, NavState
-from companion.navbuffer import NavBuffer, NavLookup, quat_slerp
+from companion.method.messages import Frame, NavState
+from companion.method.navigation.buffer import NavBuffer, NavLookup, quat_slerp
 
 __all__ = [
     "IDENTITY_MOUNT",
@@ -788,8 +788,8 @@ class TelemetryNav:
         self._eof = False
 
     def rewind(self) -> None:
-        from companion.navigation import NavAssembler
-        from companion.timesync import TimeSync
+        from companion.method.navigation.assembler import NavAssembler
+        from companion.method.navigation.timesync import TimeSync
 
         if self._log is not None:
             self._log.close()
@@ -856,7 +856,7 @@ class TelemetryNav:
         return self.buffer.lookup(t)
 
     def _dispatch(self, m: Any, now: float) -> None:
-        from companion.navigation import HANDLED_MESSAGES
+        from companion.method.navigation.assembler import HANDLED_MESSAGES
 
         kind = m.get_type()
         src = (m.get_srcSystem(), m.get_srcComponent())

@@ -30,8 +30,8 @@ import numpy as np
 from companion import config as config_mod
 from companion.config import CompanionConfig, ConfigError
 from companion.map_metrics import CellHeights, compare, bin_heights, dense_heights, map_cells, read_reference_csv
-from companion.mapper import Mapper
-from companion.mapper.features import HarrisDetector
+from companion.method.mapper import Mapper
+from companion.method.mapper.features import HarrisDetector
 from companion import plots
 from companion.plots import height_map
 from companion.recordings import (
@@ -43,7 +43,7 @@ from companion.recordings import (
     reason_key,
     recording_config,
 )
-from companion.terrain.grid import TerrainGrid
+from companion.method.terrain.grid import TerrainGrid
 
 METRICS_JSON = "metrics.json"
 MAP_PNG = "terrain_map.png"

@@ -247,7 +247,7 @@ class MapRaster:
 
 def raster_from_tiles(tiles: Iterable) -> MapRaster:
     """One :class:`MapRaster` from terrain tiles (objects with ``tx, ty, height, count,
-    cell_size_m``, as ``companion.terrain.tile.Tile``): the bounding box of the tiles, unknown
+    cell_size_m``, as ``companion.method.terrain.tile.Tile``): the bounding box of the tiles, unknown
     where no tile or no evidence."""
     tiles = list(tiles.values() if isinstance(tiles, Mapping) else tiles)
     if not tiles:
@@ -360,7 +360,7 @@ def height_over_flat_ground(ne: np.ndarray, alt_m: np.ndarray, terrain_fn: Terra
 def mapped_in_time(detected_t_s: float, crossing_t_s: float, needed_s: float) -> bool:
     """Was the obstacle in the map early enough? ``detected`` at least ``needed_s`` (the law's
     time to climb from the nominal altitude to the obstacle plus clearance,
-    ``companion.avoidance.stopping_time``) before the vehicle reached its footprint. A camera
+    ``companion.method.avoidance.stopping_time``) before the vehicle reached its footprint. A camera
     pitched 45 deg down at 15 m sees the foot of a wall about 34 m ahead, under 6 s at 6 m/s: the
     first pass over an unmapped building cannot keep the whole clearance, later passes must."""
     return bool(math.isfinite(detected_t_s) and math.isfinite(crossing_t_s) and crossing_t_s - detected_t_s >= needed_s)

@@ -15,8 +15,8 @@ TaskGroup). It
   (ArduPilot streams nothing until asked, and sends LOCAL_POSITION_NED only once its EKF origin
   exists);
 * runs TIMESYNC round trips (and answers the autopilot's own), maps autopilot time to companion
-  time (:class:`companion.timesync.TimeSync`) and detects autopilot reboots;
-* feeds navigation messages to :class:`companion.navigation.NavAssembler` and the resulting
+  time (:class:`companion.method.navigation.timesync.TimeSync`) and detects autopilot reboots;
+* feeds navigation messages to :class:`companion.method.navigation.assembler.NavAssembler` and the resulting
   NavState to :attr:`nav_buffer` (thread-safe: the mapper reads it from its worker thread);
 * sends velocity setpoints only when commanding is enabled, navigation is fresh and healthy and
   the vehicle is in GUIDED (ArduPilot) / OFFBOARD (PX4); otherwise the numbers are recorded as
@@ -58,11 +58,11 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from companion.clock import Clock
 from companion.config import CompanionConfig, ConfigError
-from companion.navbuffer import NavBuffer
-from companion.navigation import HANDLED_MESSAGES, NavAssembler, TruthPose
-from companion.timesync import TimeSync
+from companion.method.navigation.assembler import HANDLED_MESSAGES, NavAssembler, TruthPose
+from companion.method.navigation.buffer import NavBuffer
+from companion.method.navigation.timesync import TimeSync
+from drivers.clock import Clock
 from drivers.mavlink_framing import MavlinkFramer, Rejected, SignatureCheck
 
 log = logging.getLogger(__name__)

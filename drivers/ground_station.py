@@ -41,7 +41,7 @@ MAX_MOSAIC_CELLS = 4096  # per side; larger maps are decimated for display
 def _decode_tile(payload: bytes):
     # Imported on use: the ground station's wiring (and its tests) must not depend on the
     # terrain package being importable at module load.
-    from companion.terrain.codec import decode_tile
+    from companion.method.terrain.codec import decode_tile
 
     return decode_tile(payload)
 
@@ -99,7 +99,7 @@ class GroundMap:
 
     def __init__(self, vehicle: str) -> None:
         self.keys = BusKeys(vehicle)
-        self.tiles: dict[tuple[int, int], Any] = {}  # (tx, ty) -> companion.terrain.tile.Tile
+        self.tiles: dict[tuple[int, int], Any] = {}  # (tx, ty) -> companion.method.terrain.tile.Tile
         self._stamps: dict[tuple[int, int], int | None] = {}
         self.status: dict[str, Any] | None = None
         self.avoidance: dict[str, Any] | None = None

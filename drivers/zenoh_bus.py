@@ -14,7 +14,7 @@ Key expressions (``<v>`` = ``zenoh.vehicle_name``; the wire format is specified 
 ==========================================  ======================================================
 
 The bus does not know the terrain classes: tiles are opaque bytes here (encoded by
-``companion.terrain``). It keeps the last payload published for each tile, stamped with a Zenoh
+``companion.method.terrain``). It keeps the last payload published for each tile, stamped with a Zenoh
 timestamp, and answers map queries from that cache. The cache is what subscribers saw, so a late
 joiner ends up with the same map as an early one, and the query never touches the live grid from
 Zenoh's callback thread.
@@ -463,10 +463,10 @@ class ZenohBus:
     def publish_grid_changes(self, grid: Any) -> int:
         """Publish the tiles a terrain grid changed since the last call (``grid.pop_dirty()``).
 
-        ``grid`` is a ``companion.terrain.grid.TerrainGrid`` (duck-typed: ``pop_dirty()`` and
+        ``grid`` is a ``companion.method.terrain.grid.TerrainGrid`` (duck-typed: ``pop_dirty()`` and
         ``tile(key)``); call it from the thread that owns the grid. Returns the tiles published.
         """
-        from companion.terrain.codec import encode_tile  # the bus itself stays codec-agnostic
+        from companion.method.terrain.codec import encode_tile  # the bus itself stays codec-agnostic
 
         n = 0
         for key in grid.pop_dirty():

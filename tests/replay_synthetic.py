@@ -18,11 +18,11 @@ import numpy as np
 import yaml
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from companion.clock import Clock
 from companion.config import CompanionConfig, replace
-from companion.geometry import PinholeCamera, camera_from_config, euler_to_matrix, matrix_to_quat
-from companion.messages import Frame
+from companion.method.geometry import PinholeCamera, camera_from_config, euler_to_matrix, matrix_to_quat
+from companion.method.messages import Frame
 from companion.recordings import WorldFrame, camera_pose_to_opencv
+from drivers.clock import Clock
 from drivers.sim.renderer import Renderer, RenderOptions
 from drivers.sim.world import World
 

@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from companion.clock import Clock
 from companion.config import CompanionConfig, replace
-from companion.geometry import euler_to_quat
-from companion.navigation import quat_to_euler
+from companion.method.geometry import euler_to_quat
+from companion.method.navigation.assembler import quat_to_euler
 from drivers.autopilot import TYPEMASK_VELOCITY_ONLY, AutopilotLink
+from drivers.clock import Clock
 
 AP_AHEAD_S = 876.543  # the autopilot booted this long before the companion clock started
 TRUE_OFFSET = -AP_AHEAD_S  # companion - autopilot

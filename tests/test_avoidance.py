@@ -10,8 +10,8 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from companion.messages import TerrainPoints
-from companion.avoidance import (
+from companion.method.messages import TerrainPoints
+from companion.method.avoidance import (
     PullUpLaw,
     height_restriction,
     minimum_climb_rate,
@@ -20,8 +20,8 @@ from companion.avoidance import (
     time_to_go,
 )
 from companion.config import AvoidanceConfig
-from companion.messages import TerrainPoints
-from companion.terrain import TerrainGrid
+from companion.method.messages import TerrainPoints
+from companion.method.terrain import TerrainGrid
 
 
 def bang_bang_gain(w, s, a):

@@ -18,10 +18,10 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.avoidance import PullUpLaw, stopping_time
 from companion.config import AvoidanceConfig
-from companion.messages import TerrainPoints
-from companion.terrain import TerrainGrid
+from companion.method.avoidance import PullUpLaw, stopping_time
+from companion.method.messages import TerrainPoints
+from companion.method.terrain import TerrainGrid
 
 DT = 0.05  # control period (20 Hz)
 TOLERANCE_M = 0.25  # allowed dip below h_box + h_c: tracking lag of the vehicle's loop

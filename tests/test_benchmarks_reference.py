@@ -15,10 +15,10 @@ from hypothesis import strategies as st
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ is not an installed package
 from benchmarks import reference_loop as ref  # noqa: E402
 from companion.config import MapperConfig
-from companion.geometry import CameraMount, PinholeCamera, euler_to_matrix, matrix_to_quat, so3_exp
-from companion.mapper import Mapper, inverse_depth, matching, update
-from companion.mapper.projection import CameraPose
-from companion.messages import NavState
+from companion.method.geometry import CameraMount, PinholeCamera, euler_to_matrix, matrix_to_quat, so3_exp
+from companion.method.mapper import Mapper, inverse_depth, matching, update
+from companion.method.mapper.projection import CameraPose
+from companion.method.messages import NavState
 
 CAMERA = PinholeCamera(fx=625.3, fy=610.0, cx=319.5, cy=241.0, width=640, height=480)
 MOUNT = CameraMount.from_euler_deg(0.0, -45.0, 0.0, offset_m=(0.4, 0.05, 0.15))
@@ -212,7 +212,7 @@ def test_a_mapper_run_on_the_loop_equations_makes_the_batched_decisions():
     np.testing.assert_array_equal(fb.ids, fa.ids)
     np.testing.assert_allclose(fb.states, fa.states, rtol=1e-7, atol=1e-9)
     # and the swap was undone on exit
-    import companion.mapper.mapper as mapper_module
+    import companion.method.mapper.mapper as mapper_module
 
     assert mapper_module.ekf_update is update.ekf_update
     assert looped.model is inverse_depth

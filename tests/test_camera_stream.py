@@ -191,7 +191,7 @@ def test_the_camera_server_renders_the_pose_of_the_exposure():
     render of the same pose, pixel for pixel, and a textured one (not a blank that would match
     anything)."""
     from companion.config import CompanionConfig, replace
-    from companion.geometry import euler_to_matrix
+    from companion.method.geometry import euler_to_matrix
     from drivers.sim.camera_server import camera_server_from_config
 
     cfg = replace(CompanionConfig(), **{"sim.image_noise_sigma": 0.0, "camera.rate_hz": 10.0})

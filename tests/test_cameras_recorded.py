@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 import yaml
 
-from companion.clock import Clock
 from companion.config import CameraConfig, CompanionConfig, ConfigError, config_from_dict, replace
-from companion.messages import Frame
+from companion.method.messages import Frame
 from drivers.cameras import recorder as recorder_module
 from drivers.cameras.base import CorruptInput, EndOfStream
 from drivers.cameras.factory import build_camera
 from drivers.cameras.recorded import ImageFolderSource, VideoFileSource, open_recording, walk_avi
 from drivers.cameras.recorder import FrameRecorder, read_recording_meta
+from drivers.clock import Clock
 
 W, H = 80, 60
 

@@ -12,7 +12,6 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.clock import Clock
 from companion.config import CameraConfig, ConfigError, replace
 from drivers.cameras.base import CameraError
 from drivers.cameras.factory import build_camera
@@ -26,6 +25,7 @@ from drivers.cameras.v4l2 import (
     parse_device,
     parse_pixel_format,
 )
+from drivers.clock import Clock
 
 W, H = 64, 48
 

@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.messages import TerrainPoints
-from companion.terrain.codec import decode_tile
-from companion.terrain.grid import TerrainGrid
+from companion.method.messages import TerrainPoints
+from companion.method.terrain.codec import decode_tile
+from companion.method.terrain.grid import TerrainGrid
 from drivers.sim.harness import MavClient, SimVehicleProcess
 from drivers.sim.world import World
 from tests.processes import ZenohListener, companion, free_port, stop, write_config

@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import MapperConfig
-from companion.mapper.features import HarrisDetector, detect_corners, suppress_within
+from companion.method.mapper.features import HarrisDetector, detect_corners, suppress_within
 
 SUPERSAMPLE = 4
 
@@ -279,7 +279,7 @@ def test_quality_threshold_is_relative_to_the_best_response():
 )
 @settings(max_examples=60, deadline=None)
 def test_vectorised_selection_equals_the_sequential_rule(pts, d, per_bin, max_detections):
-    from companion.mapper.features import select_features
+    from companion.method.mapper.features import select_features
 
     xy = np.array(pts, float).reshape(-1, 2)
     cfg = cfg_with(bins_x=4, bins_y=3, per_bin=per_bin, min_distance_px=d, max_detections=max_detections)
@@ -471,7 +471,7 @@ def test_cost_relative_to_cornerharris_alone():
 @given(st.lists(st.integers(0, 6), min_size=0, max_size=60), st.integers(1, 70))
 @settings(max_examples=60, deadline=None)
 def test_strongest_is_a_prefix_of_the_stable_sort(values, T):
-    from companion.mapper.features import strongest
+    from companion.method.mapper.features import strongest
 
     score = np.array(values, float)  # small integers: many ties
     assert strongest(score, T).tolist() == np.argsort(-score, kind="stable")[:T].tolist()

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.geodesy import PROJECTIONS, LocalFrame, _ecef, _geodetic, place_cells, transform
+from companion.method.geodesy import PROJECTIONS, LocalFrame, _ecef, _geodetic, place_cells, transform
 
 ORIGIN = (47.397742, 8.545594, 488.0)  # the SITL default home
 

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.geometry import (
+from companion.method.geometry import (
     CameraMount,
     PinholeCamera,
     euler_to_matrix,
@@ -84,7 +84,7 @@ def test_undistort_inverts_distort():
 
 def test_default_camera_matches_paper_fov():
     from companion.config import CompanionConfig
-    from companion.geometry import camera_from_config
+    from companion.method.geometry import camera_from_config
 
     cam, _ = camera_from_config(CompanionConfig().camera)
     assert cam.vertical_fov_deg == pytest.approx(42.0, abs=0.05)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from companion.config import ZenohConfig
-from companion.terrain.codec import encode_tile
-from companion.terrain.tile import Tile
+from companion.method.terrain.codec import encode_tile
+from companion.method.terrain.tile import Tile
 from drivers.ground_station import UNKNOWN_BGR, GroundMap, GroundStation
 from drivers.zenoh_bus import BusKeys, ZenohBus, json_payload
 from tests.processes import free_port, poll_until

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from companion.guidance import WaypointGuidance
+from companion.method.guidance import WaypointGuidance
 
 
 def fly(guidance, start, dt=0.1, steps=4000):

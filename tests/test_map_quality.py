@@ -21,12 +21,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.map_quality import RunSpec, classify_points, fly, map_figures, table, versus_oracle  # noqa: E402
 from companion.config import MapperConfig  # noqa: E402
-from companion.geometry import CameraMount, PinholeCamera, matrix_to_quat, so3_exp  # noqa: E402
-from companion.mapper import Mapper, cartesian, inverse_depth  # noqa: E402
-from companion.mapper.mapper import navigation_drift  # noqa: E402
-from companion.mapper.projection import CameraPose  # noqa: E402
-from companion.messages import NavState, TerrainPoints  # noqa: E402
-from companion.terrain.grid import TerrainGrid  # noqa: E402
+from companion.method.geometry import CameraMount, PinholeCamera, matrix_to_quat, so3_exp  # noqa: E402
+from companion.method.mapper import Mapper, cartesian, inverse_depth  # noqa: E402
+from companion.method.mapper.mapper import navigation_drift  # noqa: E402
+from companion.method.mapper.projection import CameraPose  # noqa: E402
+from companion.method.messages import NavState, TerrainPoints  # noqa: E402
+from companion.method.terrain.grid import TerrainGrid  # noqa: E402
 
 CAMERA = PinholeCamera(fx=625.3, fy=625.3, cx=319.5, cy=239.5, width=640, height=480)
 MOUNT = CameraMount.from_euler_deg(0.0, -45.0, 0.0, offset_m=(0.3, 0.0, 0.1))

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from companion.config import MapperConfig
-from companion.geometry import CameraMount, PinholeCamera, euler_to_quat
-from companion.mapper import Mapper, cartesian, inverse_depth
-from companion.mapper.matching import gate_and_match, innovation_covariance, mahalanobis_distances
-from companion.mapper.projection import CameraPose
-from companion.mapper.update import ekf_update
-from companion.messages import NavState
+from companion.method.geometry import CameraMount, PinholeCamera, euler_to_quat
+from companion.method.mapper import Mapper, cartesian, inverse_depth
+from companion.method.mapper.matching import gate_and_match, innovation_covariance, mahalanobis_distances
+from companion.method.mapper.projection import CameraPose
+from companion.method.mapper.update import ekf_update
+from companion.method.messages import NavState
 
 CAMERA = PinholeCamera(fx=625.3, fy=625.3, cx=319.5, cy=239.5, width=640, height=480)
 MOUNT = CameraMount.from_euler_deg(0.0, -45.0, 0.0, offset_m=(0.3, 0.0, 0.1))

@@ -21,12 +21,12 @@ from hypothesis import strategies as st
 
 from companion.config import MapperConfig
 from companion.daemon import Percentiles
-from companion.geometry import quat_to_matrix
-from companion.mapper import appearance, matching
-from companion.mapper.features import HarrisDetector, _close_pairs, suppress_within
-from companion.mapper.mapper import _checked_pose_covariance, check_nav
-from companion.mapper.projection import rotation_from_quaternion
-from companion.messages import NavState
+from companion.method.geometry import quat_to_matrix
+from companion.method.mapper import appearance, matching
+from companion.method.mapper.features import HarrisDetector, _close_pairs, suppress_within
+from companion.method.mapper.mapper import _checked_pose_covariance, check_nav
+from companion.method.mapper.projection import rotation_from_quaternion
+from companion.method.messages import NavState
 
 SEEDS = st.integers(0, 2**32 - 1)
 
@@ -293,8 +293,8 @@ def test_frame_patches_are_the_rows_of_all_patches():
 
 def random_features(rng, n):
     """Inverse-depth states (n, 6) and reference rotations (n, 3, 3) seen by a camera looking down."""
-    from companion.geometry import so3_exp
-    from companion.mapper import inverse_depth
+    from companion.method.geometry import so3_exp
+    from companion.method.mapper import inverse_depth
 
     y = np.column_stack([rng.normal(0.0, 5.0, (n, 3)), rng.uniform(-3.2, 3.2, n), rng.uniform(-1.2, 1.2, n),
                          rng.uniform(0.01, 0.2, n)])
@@ -311,10 +311,10 @@ def test_shared_ray_directions_equal_each_function_computing_its_own(seed, n):
     to the bit on the same features; on a subset (the visible features) to the last bit or two,
     since the terms were computed over the whole batch, and NumPy's vectorised loops may round
     a batch of one differently from a longer one (4e-16 relative seen)."""
-    from companion.geometry import camera_from_config
+    from companion.method.geometry import camera_from_config
     from companion.config import CompanionConfig
-    from companion.mapper import inverse_depth as idp
-    from companion.mapper.projection import CameraPose
+    from companion.method.mapper import inverse_depth as idp
+    from companion.method.mapper.projection import CameraPose
 
     rng = np.random.default_rng(seed)
     y, R_ref = random_features(rng, n)
@@ -359,9 +359,9 @@ def test_a_zero_navigation_covariance_is_skipped_exactly(seed, n, nonfinite):
     covariance, the EKF update and the initialisation then skip its terms. The results equal the
     general path's (the zero terms computed and added), also when C_x is not finite (inf * 0)."""
     from companion.config import CompanionConfig
-    from companion.geometry import camera_from_config
-    from companion.mapper import inverse_depth as idp, update
-    from companion.mapper.projection import CameraPose
+    from companion.method.geometry import camera_from_config
+    from companion.method.mapper import inverse_depth as idp, update
+    from companion.method.mapper.projection import CameraPose
 
     rng = np.random.default_rng(seed)
     C_x, C_y = rng.normal(size=(n, 2, 6)) * 50, rng.normal(size=(n, 2, 6)) * 50

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from companion.geometry import CameraMount, PinholeCamera, euler_to_matrix, so3_exp
-from companion.mapper import cartesian, inverse_depth
-from companion.mapper.depth_prior import flat_ground_ranges, prior_ranges
-from companion.mapper.projection import CameraPose
+from companion.method.geometry import CameraMount, PinholeCamera, euler_to_matrix, so3_exp
+from companion.method.mapper import cartesian, inverse_depth
+from companion.method.mapper.depth_prior import flat_ground_ranges, prior_ranges
+from companion.method.mapper.projection import CameraPose
 
 CAMERA = PinholeCamera(fx=625.3, fy=610.0, cx=319.5, cy=239.5, width=640, height=480)
 MODELS = [inverse_depth, cartesian]

@@ -17,9 +17,9 @@ import math
 import numpy as np
 
 from companion.config import MapperConfig
-from companion.geometry import CameraMount, PinholeCamera, euler_to_matrix, matrix_to_quat, so3_exp
-from companion.mapper import Mapper
-from companion.messages import NavState
+from companion.method.geometry import CameraMount, PinholeCamera, euler_to_matrix, matrix_to_quat, so3_exp
+from companion.method.mapper import Mapper
+from companion.method.messages import NavState
 
 CAMERA = PinholeCamera(fx=625.3, fy=625.3, cx=319.5, cy=239.5, width=640, height=480)  # 42 deg vertical FOV
 MOUNT = CameraMount.from_euler_deg(0.0, -45.0, 0.0, offset_m=(0.4, 0.0, 0.15))

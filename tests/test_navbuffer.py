@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.geometry import euler_to_quat, quat_to_matrix
-from companion.messages import NavState
-from companion.navbuffer import NavBuffer, quat_slerp
+from companion.method.geometry import euler_to_quat, quat_to_matrix
+from companion.method.messages import NavState
+from companion.method.navigation.buffer import NavBuffer, quat_slerp
 
 
 def nav(t, p=(0, 0, 0), v=(0, 0, 0), yaw=0.0, cov=1.0, source="floors"):
@@ -181,8 +181,8 @@ def test_extrapolation_continues_a_constant_turn(yaw_rate, ahead):
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3), st.floats(0.0, 3.0))
 def test_so3_log_inverts_so3_exp(axis, angle):
-    from companion.geometry import so3_exp
-    from companion.navbuffer import so3_log
+    from companion.method.geometry import so3_exp
+    from companion.method.navigation.buffer import so3_log
 
     a = np.asarray(axis)
     if np.linalg.norm(a) < 1e-3:

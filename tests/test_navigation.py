@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import NavConfig
-from companion.geometry import euler_to_matrix, euler_to_quat, matrix_to_quat, quat_to_matrix
-from companion.navigation import (
+from companion.method.geometry import euler_to_matrix, euler_to_quat, matrix_to_quat, quat_to_matrix
+from companion.method.navigation.assembler import (
     ARDUPILOT_EARTH_RADIUS_M,
     NavAssembler,
     apply_floors,

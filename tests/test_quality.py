@@ -15,11 +15,11 @@ import pytest
 
 from companion import report
 from companion.config import ConfigError, replace
-from companion.control import Controller
-from companion.messages import NavState
+from companion.method.control import Controller
+from companion.method.messages import NavState
+from companion.method.terrain.grid import TerrainGrid
 from companion.quality import engine, metrics
 from companion.quality.scenarios import flight_config, parse_set
-from companion.terrain.grid import TerrainGrid
 from drivers.sim.world import World
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -239,7 +239,7 @@ def test_every_scenario_loads_and_flies_over_its_obstacles():
 
 def test_faint_texture_is_faint():
     from companion.config import CompanionConfig
-    from companion.geometry import camera_from_config
+    from companion.method.geometry import camera_from_config
     from drivers.sim.renderer import Renderer, RenderOptions
 
     camera, _ = camera_from_config(CompanionConfig().camera)

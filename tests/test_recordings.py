@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 
 import replay_synthetic as rs
 from companion.config import CompanionConfig
-from companion.geometry import CameraMount, PinholeCamera, euler_to_matrix
+from companion.method.geometry import CameraMount, PinholeCamera, euler_to_matrix
+from companion.method.terrain.grid import TerrainGrid
 from companion.recordings import (
     IDENTITY_MOUNT,
     Overrides,
@@ -32,7 +33,6 @@ from companion.recordings import (
     read_gray,
 )
 from companion.replay import JPEG_BLACK_LEVEL, black_level_for, build_mapper, clamp_black
-from companion.terrain.grid import TerrainGrid
 
 AXES = ["x", "-x", "y", "-y", "z", "-z"]
 

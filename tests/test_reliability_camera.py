@@ -20,13 +20,13 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.clock import Clock
 from companion.config import CompanionConfig, replace
-from companion.geometry import CameraMount, PinholeCamera
-from companion.messages import NavState
+from companion.method.geometry import CameraMount, PinholeCamera
+from companion.method.messages import NavState
 from drivers.cameras.base import CameraError, EndOfStream
 from drivers.cameras.recorded import ImageFolderSource
 from drivers.cameras.v4l2 import V4L2Source, opencv_v4l2_backend
+from drivers.clock import Clock
 
 W, H = 320, 240
 RATE_HZ = 20.0

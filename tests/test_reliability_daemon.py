@@ -23,12 +23,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.clock import Clock
 from companion.config import CompanionConfig, TerrainConfig
 from companion.config import replace as replace_config
-from companion.terrain import persistence
-from companion.terrain.grid import TerrainGrid, grids_equal
-from companion.terrain.persistence import (
+from companion.method.terrain import persistence
+from companion.method.terrain.grid import TerrainGrid, grids_equal
+from companion.method.terrain.persistence import (
     count_known_cells,
     load_latest,
     previous_path,
@@ -37,7 +36,8 @@ from companion.terrain.persistence import (
     write_snapshot,
     write_snapshot_bytes,
 )
-from companion.terrain.tile import Tile
+from companion.method.terrain.tile import Tile
+from drivers.clock import Clock
 from drivers.sim.harness import MavClient, SimVehicleProcess
 from tests.processes import ZenohListener, free_port, stop, write_config
 

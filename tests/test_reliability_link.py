@@ -29,11 +29,11 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from companion.clock import Clock
 from companion.config import CompanionConfig, ConfigError, replace
-from companion.geometry import euler_to_quat
-from companion.navigation import MAX_FUTURE_S
+from companion.method.geometry import euler_to_quat
+from companion.method.navigation.assembler import MAX_FUTURE_S
 from drivers.autopilot import AutopilotLink
+from drivers.clock import Clock
 from drivers.mavlink_framing import CATEGORIES, MavlinkFramer, Rejected, SignatureCheck, signature_timestamp
 from tests.test_autopilot_link import Peer, make_cfg, running, until
 from tests.test_reliability_daemon import ManualClock

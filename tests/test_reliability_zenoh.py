@@ -17,8 +17,8 @@ import pytest
 import zenoh
 
 from companion.config import ZenohConfig
-from companion.terrain.codec import decode_tile, encode_tile
-from companion.terrain.tile import Tile
+from companion.method.terrain.codec import decode_tile, encode_tile
+from companion.method.terrain.tile import Tile
 from drivers.ground_station import GroundStation
 from drivers.sim.harness import MavClient, SimVehicleProcess
 from drivers.zenoh_bus import BusKeys, ZenohBus, json_payload

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.geometry import CameraMount, PinholeCamera, euler_to_matrix
+from companion.method.geometry import CameraMount, PinholeCamera, euler_to_matrix
 from drivers.sim.renderer import Renderer, RenderOptions
 from drivers.sim.textures import synthesize
 from drivers.sim.world import World

@@ -7,11 +7,11 @@ import time
 import numpy as np
 import pytest
 
-from companion.clock import Clock
 from companion.config import CompanionConfig
-from companion.geometry import CameraMount, PinholeCamera, euler_to_quat, quat_to_matrix
+from companion.method.geometry import CameraMount, PinholeCamera, euler_to_quat, quat_to_matrix
 from drivers.cameras.base import CameraError
 from drivers.cameras.synthetic import SyntheticCamera, synthetic_camera_from_config
+from drivers.clock import Clock
 from drivers.sim.renderer import Renderer
 from drivers.sim.world import World
 

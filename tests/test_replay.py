@@ -18,12 +18,12 @@ import yaml
 import replay_synthetic as rs
 from companion import cli
 from companion.config import CompanionConfig
-from companion.geometry import matrix_to_quat
 from companion.map_metrics import bin_heights, compare, map_cells, read_reference_csv, reference_metrics
-from companion.messages import NavState
+from companion.method.geometry import matrix_to_quat
+from companion.method.messages import NavState
+from companion.method.terrain.grid import TerrainGrid
 from companion.recordings import WorldFrame, export_tum, open_recording, pose_covariance, recording_config
 from companion.replay import EXIT_NOTHING_MAPPED, build_mapper, load_reference, run_replay
-from companion.terrain.grid import TerrainGrid
 
 # Region of the flight's map, and the accuracy the mapper reaches on it today (measured: median
 # |error| ~0.02 m, RMSE ~0.07 m, 100 % of cells within 1 m). Since the mapper emits a point only

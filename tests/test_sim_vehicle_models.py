@@ -8,7 +8,7 @@ from hypothesis import given, settings, strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from companion.config import SimConfig, replace
-from companion.geometry import matrix_to_euler
+from companion.method.geometry import matrix_to_euler
 from drivers.sim.ardupilot import GUIDED, ArduPilotCopter
 from drivers.sim.dynamics import GRAVITY_MPS2, MultirotorLimits, PointMassMultirotor, Setpoint, sqrt_controller
 from drivers.sim.mavlink_endpoint import StreamSchedule

@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.messages import TerrainPoints
-from companion.terrain import TerrainGrid, Tile, decode_tile, encode_tile
+from companion.method.messages import TerrainPoints
+from companion.method.terrain import TerrainGrid, Tile, decode_tile, encode_tile
 
 
 def random_tile(rng, t=8, tx=-3, ty=7, cell=0.5, disagreement=False):

@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import TerrainConfig
-from companion.messages import TerrainPoints
-from companion.terrain import TerrainGrid
+from companion.method.messages import TerrainPoints
+from companion.method.terrain import TerrainGrid
 
 
 def points(ne_h, sigma_h=0.5, sigma_ne=0.05):

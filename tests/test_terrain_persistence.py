@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from companion.config import TerrainConfig
-from companion.messages import TerrainPoints
-from companion.terrain import SnapshotError, TerrainGrid
-from companion.terrain.grid import grids_equal
+from companion.method.messages import TerrainPoints
+from companion.method.terrain import SnapshotError, TerrainGrid
+from companion.method.terrain.grid import grids_equal
 
 
 def batch(rng, n=400, spread=60.0, height=0.0):

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.timesync import TimeSync
+from companion.method.navigation.timesync import TimeSync
 
 TRUE_OFFSET = 123.456  # companion - autopilot (s)
 

@@ -233,9 +233,9 @@ def test_changed_tiles_reach_a_subscriber(linked):
 
 
 def test_grid_changes_are_published_once(linked):
-    from companion.terrain.codec import decode_tile
-    from companion.terrain.grid import TerrainGrid
-    from companion.terrain.tile import Tile
+    from companion.method.terrain.codec import decode_tile
+    from companion.method.terrain.grid import TerrainGrid
+    from companion.method.terrain.tile import Tile
     import numpy as np
 
     bus, ground = linked

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from companion.config import ZenohConfig
-from companion.terrain.codec import encode_tile
-from companion.terrain.tile import Tile
+from companion.method.terrain.codec import encode_tile
+from companion.method.terrain.tile import Tile
 from drivers.ground_station import GroundStation
 from drivers.zenoh_bus import ZenohBus
 from tests.processes import free_port

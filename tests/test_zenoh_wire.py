@@ -20,8 +20,8 @@ import pytest
 import zenoh
 
 from companion.config import ZenohConfig
-from companion.terrain.codec import encode_tile
-from companion.terrain.tile import Tile
+from companion.method.terrain.codec import encode_tile
+from companion.method.terrain.tile import Tile
 from drivers.zenoh_bus import ZenohBus
 from tests.processes import free_port
 

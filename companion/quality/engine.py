@@ -34,15 +34,15 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from companion import report
-from companion.avoidance import margin_height
+from companion.method.avoidance import margin_height
 from companion.config import CompanionConfig
-from companion.control import Controller
-from companion.geometry import camera_from_config
-from companion.mapper import Mapper
-from companion.mapper.features import HarrisDetector, as_gray
-from companion.messages import NavState
-from companion.navigation import NavAssembler
-from companion.terrain.grid import TerrainGrid
+from companion.method.control import Controller
+from companion.method.geometry import camera_from_config
+from companion.method.mapper import Mapper
+from companion.method.mapper.features import HarrisDetector, as_gray
+from companion.method.messages import NavState
+from companion.method.navigation.assembler import NavAssembler
+from companion.method.terrain.grid import TerrainGrid
 
 GPS_MSG_RATE_HZ = 5.0      # GPS_RAW_INT as streamed to the service
 EKF_MSG_RATE_HZ = 2.0      # EKF_STATUS_REPORT

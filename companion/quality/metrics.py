@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from companion import report
-from companion.avoidance import stopping_time
+from companion.method.avoidance import stopping_time
 from companion.config import AvoidanceConfig
 
 TerrainFn = Callable[[np.ndarray, np.ndarray], np.ndarray]

@@ -1,6 +1,6 @@
 """The interface every camera source implements.
 
-A source yields :class:`companion.messages.Frame` objects stamped at capture on the companion
+A source yields :class:`companion.method.messages.Frame` objects stamped at capture on the companion
 clock. Reading is async; blocking device or file reads run in a worker thread inside the source.
 """
 
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import abc
 
-from companion.messages import Frame
+from companion.method.messages import Frame
 
 
 class CameraError(RuntimeError):

@@ -1,7 +1,7 @@
 """Frame admission shared by the real camera sources: counted rejections, never silent repairs.
 
 Every frame a V4L2 device or a recording yields passes :class:`FrameChecker.admit` before it
-becomes a :class:`companion.messages.Frame`. The checks, in order:
+becomes a :class:`companion.method.messages.Frame`. The checks, in order:
 
 1. pixel format: uint8 with 1, 3 or 4 channels (colour is converted to grey here, once);
 2. size: exactly the configured width x height; the image is never resized, because the

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from companion.clock import Clock
 from companion.config import CameraConfig, ConfigError
 from drivers.cameras.base import CameraSource
+from drivers.clock import Clock
 
 
 def build_camera(config: CameraConfig, clock: Clock, **kwargs: Any) -> CameraSource:

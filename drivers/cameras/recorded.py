@@ -36,11 +36,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from companion.clock import Clock
 from companion.config import CameraConfig, ConfigError
-from companion.messages import Frame
+from companion.method.messages import Frame
 from drivers.cameras.base import CameraSource, CorruptInput, EndOfStream
 from drivers.cameras.checks import CameraStats, FrameChecker
+from drivers.clock import Clock
 
 log = logging.getLogger(__name__)
 

@@ -35,9 +35,9 @@ import cv2
 import numpy as np
 import yaml
 
-from companion.clock import Clock
 from companion.config import CameraConfig, CompanionConfig
-from companion.messages import Frame
+from companion.method.messages import Frame
+from drivers.clock import Clock
 
 log = logging.getLogger(__name__)
 

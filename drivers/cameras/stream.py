@@ -23,7 +23,7 @@ from collections.abc import Callable
 import numpy as np
 
 from companion.config import CameraConfig
-from companion.messages import Frame
+from companion.method.messages import Frame
 from drivers.addresses import parse_host_port
 from drivers.cameras.base import CameraError, CameraSource
 from drivers.cameras.checks import CameraStats, FrameChecker

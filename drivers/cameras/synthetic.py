@@ -14,10 +14,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from companion.clock import Clock
-from companion.geometry import CameraMount, quat_to_matrix
-from companion.messages import Frame
+from companion.method.geometry import CameraMount, quat_to_matrix
+from companion.method.messages import Frame
 from drivers.cameras.base import CameraError, CameraSource
+from drivers.clock import Clock
 from drivers.sim.renderer import Renderer
 
 # () -> (t_s companion time, position NED (3,), quaternion body->NED wxyz (4,)) or None.
@@ -116,7 +116,7 @@ def synthetic_camera_from_config(cfg, clock: Clock, pose_at: PoseProvider, world
     """Build the world (``cfg.sim.scenario`` unless given), renderer and camera from a
     :class:`companion.config.CompanionConfig`: intrinsics, mount and rate from ``cfg.camera``, sensor
     noise, blur and pose age limit from ``cfg.sim``."""
-    from companion.geometry import camera_from_config
+    from companion.method.geometry import camera_from_config
     from drivers.sim.renderer import RenderOptions
     from drivers.sim.world import World
 

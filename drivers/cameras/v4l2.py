@@ -35,11 +35,11 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from companion.clock import Clock
 from companion.config import CameraConfig, ConfigError
-from companion.messages import Frame
+from companion.method.messages import Frame
 from drivers.cameras.base import CameraError, CameraSource
 from drivers.cameras.checks import CameraStats, FrameChecker
+from drivers.clock import Clock
 
 log = logging.getLogger(__name__)
 

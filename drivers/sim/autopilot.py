@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from companion.geometry import matrix_to_euler, matrix_to_quat
+from companion.method.geometry import matrix_to_euler, matrix_to_quat
 from drivers.sim.dynamics import GRAVITY_MPS2, MultirotorLimits, PointMassMultirotor, Setpoint, WindModel
 from drivers.sim.mavlink_endpoint import StreamSchedule
 from drivers.sim.navigation_error import GaussMarkovNavError, GpsReceiver, NavErrorSpec

@@ -20,7 +20,7 @@ import logging
 
 import numpy as np
 
-from companion.geometry import CameraMount
+from companion.method.geometry import CameraMount
 from drivers.cameras.stream import encode_frame
 from drivers.sim.renderer import Renderer
 
@@ -125,7 +125,7 @@ class CameraServer:
 def camera_server_from_config(cfg, host: str, port: int, rate_hz: float | None = None, world=None) -> CameraServer:
     """The server for a :class:`companion.config.CompanionConfig`: intrinsics, mount and rate from
     ``cfg.camera`` (``rate_hz`` overrides), scenario, image noise and blur from ``cfg.sim``."""
-    from companion.geometry import camera_from_config
+    from companion.method.geometry import camera_from_config
     from drivers.sim.renderer import RenderOptions
     from drivers.sim.world import World
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.geometry import matrix_to_quat
+from companion.method.geometry import matrix_to_quat
 
 GRAVITY_MPS2 = 9.80665
 NAN = float("nan")

@@ -17,7 +17,7 @@ stationary covariance) and started from its stationary law, so its marginal cova
 ``diag(sigma^2)`` at every instant, not only asymptotically.
 
 Attitude (rotation vector in NED, ``R_true = Exp(e_att) R_est`` as in
-companion.messages.NavState): per axis the same critically damped second-order process as
+companion.method.messages.NavState): per axis the same critically damped second-order process as
 position/velocity, with the attitude error's rate as its hidden second state and
 ``w = 2 / tau`` (``tau`` = ``att_tau_s``, the integral correlation time: the autocorrelation
 ``(1 + w t) exp(-w t)`` integrates to ``2 / w``). A real EKF's attitude error is smooth: it is the
@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.geometry import so3_exp
+from companion.method.geometry import so3_exp
 
 POS = slice(0, 3)
 VEL = slice(3, 6)

@@ -33,7 +33,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from companion.geometry import PAPER_TO_OPENCV, PinholeCamera
+from companion.method.geometry import PAPER_TO_OPENCV, PinholeCamera
 from drivers.sim.textures import synthesize
 from drivers.sim.world import UP, Face, TextureSpec, World
 

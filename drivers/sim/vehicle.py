@@ -10,7 +10,7 @@ ephemeral port is bound; every endpoint prints one machine-readable line on stdo
 ``LISTENING tcp 127.0.0.1:40521`` or ``SENDING udp 127.0.0.1:14550 from port 51234``.
 
 Pacing: a fixed physics step (``sim.physics_rate_hz``) in simulated time, kept in step with a
-:class:`companion.clock.Clock` running ``--speedup`` times faster than the wall clock. Streams go
+:class:`drivers.clock.Clock` running ``--speedup`` times faster than the wall clock. Streams go
 out at their requested rates in simulated time; ``time_boot_ms`` / ``time_usec`` are simulated
 time since boot. If the machine cannot keep up, the simulation slows down (simulated time stays
 consistent, it just runs slower than requested) and the slips are counted and logged. Received
@@ -33,9 +33,9 @@ import time
 
 import yaml
 
-from companion.clock import Clock
 from companion.config import CompanionConfig, ConfigError, config_from_dict, load_config
 from drivers.addresses import parse_host_port
+from drivers.clock import Clock
 from drivers.sim.autopilot import Home, SimAutopilot
 from drivers.sim.mavlink_endpoint import Link, TcpListenEndpoint, UdpInEndpoint, UdpOutEndpoint
 

@@ -26,7 +26,7 @@ import zlib
 
 import numpy as np
 
-from companion.terrain.tile import Tile
+from companion.method.terrain.tile import Tile
 
 MAGIC = b"CTTL"
 VERSION = 1

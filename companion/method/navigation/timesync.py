@@ -1,7 +1,7 @@
 """Autopilot time -> companion time.
 
 The autopilot stamps its messages with its own boot clock (``time_boot_ms``, ``time_usec``);
-frames are stamped on the companion :class:`companion.clock.Clock`. This module estimates
+frames are stamped on the companion :class:`drivers.clock.Clock`. This module estimates
 
     offset = t_companion - t_autopilot      (seconds, constant up to crystal drift)
 

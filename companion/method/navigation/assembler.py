@@ -55,8 +55,8 @@ from typing import Any
 import numpy as np
 
 from companion.config import NavConfig
-from companion.geometry import quat_to_matrix
-from companion.messages import NavState
+from companion.method.geometry import quat_to_matrix
+from companion.method.messages import NavState
 
 # --------------------------------------------------------------------------------------------
 # MAVLink constants used here (values from common.xml / ardupilotmega.xml)
@@ -389,7 +389,7 @@ class NavAssembler:
 
     cfg: the ``nav`` section (floors, ages, ratio threshold).
     time_map: autopilot boot time (s) -> companion time (s), or None when not synchronised
-        (e.g. :meth:`companion.timesync.TimeSync.to_companion`); without a mapping the arrival time
+        (e.g. :meth:`companion.method.navigation.timesync.TimeSync.to_companion`); without a mapping the arrival time
         is used and :attr:`time_basis` says so.
 
     Time bases are never mixed: when the basis changes (arrival time -> synchronised, or back after

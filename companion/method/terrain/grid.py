@@ -16,9 +16,9 @@ from typing import Iterator
 import numpy as np
 
 from companion.config import TerrainConfig
-from companion.messages import TerrainPoints
-from companion.terrain import fusion
-from companion.terrain.tile import Tile
+from companion.method.messages import TerrainPoints
+from companion.method.terrain import fusion
+from companion.method.terrain.tile import Tile
 
 _KEY_SHIFT = np.int64(1 << 32)
 _KEY_BIAS = np.int64(1 << 31)
@@ -541,7 +541,7 @@ class TerrainGrid:
 
     def save_snapshot(self, path: str | Path) -> None:
         """Write the whole map atomically (docs/terrain.md, "Snapshot format")."""
-        from companion.terrain.persistence import write_snapshot
+        from companion.method.terrain.persistence import write_snapshot
 
         write_snapshot(self, path)
 
@@ -549,7 +549,7 @@ class TerrainGrid:
     def load_snapshot(cls, path: str | Path, cfg: TerrainConfig | None = None) -> "TerrainGrid":
         """Read a snapshot written by :meth:`save_snapshot`; fusion parameters come from ``cfg``.
         A truncated, corrupted or incompatible file raises SnapshotError and builds nothing."""
-        from companion.terrain.persistence import read_snapshot
+        from companion.method.terrain.persistence import read_snapshot
 
         return read_snapshot(path, cfg)
 

@@ -21,8 +21,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from companion.geometry import PAPER_TO_OPENCV, PinholeCamera, skew
-from companion.mapper.projection import CameraPose, camera_ray_from_pixel, pixel_from_camera_vector, pixel_jacobian
+from companion.method.geometry import PAPER_TO_OPENCV, PinholeCamera, skew
+from companion.method.mapper.projection import CameraPose, camera_ray_from_pixel, pixel_from_camera_vector, pixel_jacobian
 
 STATE_DIM = 6
 ANCHOR = slice(0, 3)

@@ -3,7 +3,7 @@
 See docs/mapper.md for the equations as implemented.
 """
 
-from companion.mapper.depth_prior import DepthPrior, flat_ground_ranges
-from companion.mapper.mapper import FeatureSnapshot, Mapper, MapperStep
+from companion.method.mapper.depth_prior import DepthPrior, flat_ground_ranges
+from companion.method.mapper.mapper import FeatureSnapshot, Mapper, MapperStep
 
 __all__ = ["DepthPrior", "FeatureSnapshot", "Mapper", "MapperStep", "flat_ground_ranges"]

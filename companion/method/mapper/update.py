@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from companion.mapper.matching import inverse_2x2, navigation_term_vanishes
+from companion.method.mapper.matching import inverse_2x2, navigation_term_vanishes
 
 
 _IDENTITY = {k: np.eye(k) for k in range(1, 7)}

@@ -22,11 +22,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.avoidance import AvoidanceCommand, PullUpLaw
+from companion.method.avoidance import AvoidanceCommand, PullUpLaw
 from companion.config import CompanionConfig
-from companion.guidance import WaypointGuidance
-from companion.messages import NavState
-from companion.terrain.grid import TerrainGrid
+from companion.method.guidance import WaypointGuidance
+from companion.method.messages import NavState
+from companion.method.terrain.grid import TerrainGrid
 
 
 @dataclass(frozen=True, slots=True)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import AvoidanceConfig
-from companion.terrain.grid import TerrainGrid
+from companion.method.terrain.grid import TerrainGrid
 
 
 def time_to_go(along_m: np.ndarray, cross_m: np.ndarray, radius_m: float, speed_mps: float) -> np.ndarray:

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from companion.geometry import PinholeCamera, skew
-from companion.mapper.inverse_depth import reference_rotation
-from companion.mapper.projection import CameraPose, camera_ray_from_pixel, pixel_jacobian
+from companion.method.geometry import PinholeCamera, skew
+from companion.method.mapper.inverse_depth import reference_rotation
+from companion.method.mapper.projection import CameraPose, camera_ray_from_pixel, pixel_jacobian
 
 STATE_DIM = 3
 

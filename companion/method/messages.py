@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.geometry import quat_to_matrix
+from companion.method.geometry import quat_to_matrix
 
 # Index blocks of NavState.covariance (9x9): position, velocity, attitude error (rotation vector, NED).
 POS = slice(0, 3)

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from companion.config import TerrainConfig
-from companion.terrain.codec import decode_tile, encode_tile
+from companion.method.terrain.codec import decode_tile, encode_tile
 
 MAGIC = b"CTSN"
 VERSION = 1
@@ -144,7 +144,7 @@ def read_snapshot(path: str | Path, cfg: TerrainConfig | None = None):
     None). Raises SnapshotError on a missing, truncated, corrupted, foreign, newer-version or
     geometry-mismatched file.
     """
-    from companion.terrain.grid import TerrainGrid
+    from companion.method.terrain.grid import TerrainGrid
 
     path = Path(path)
     try:
@@ -247,7 +247,7 @@ def load_latest(path: str | Path, cfg: TerrainConfig | None = None, *, clean: bo
     good one, and the refusal is logged and returned. With ``clean`` the temporaries of writes a
     crash interrupted are removed first (call it only when no writer runs: at start-up).
     """
-    from companion.terrain.grid import TerrainGrid
+    from companion.method.terrain.grid import TerrainGrid
 
     path = Path(path)
     removed = 0

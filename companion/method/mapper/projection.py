@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.geometry import CameraMount, PinholeCamera
+from companion.method.geometry import CameraMount, PinholeCamera
 
 VEHICLE_DIM = 6  # [p (3), dtheta (3)]
 

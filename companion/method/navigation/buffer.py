@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.geometry import matrix_to_quat, quat_to_matrix, so3_exp
-from companion.messages import NavState
+from companion.method.geometry import matrix_to_quat, quat_to_matrix, so3_exp
+from companion.method.messages import NavState
 
 
 @dataclass(frozen=True, slots=True)

@@ -26,12 +26,12 @@ from types import ModuleType
 import numpy as np
 
 from companion.config import MapperConfig
-from companion.geometry import CameraMount, PinholeCamera, skew
-from companion.mapper import cartesian, inverse_depth
-from companion.mapper.appearance import FramePatches, GivenPatches, pair_correlation
-from companion.mapper.database import FeatureDatabase
-from companion.mapper.depth_prior import DepthPrior, prior_ranges
-from companion.mapper.matching import (
+from companion.method.geometry import CameraMount, PinholeCamera, skew
+from companion.method.mapper import cartesian, inverse_depth
+from companion.method.mapper.appearance import FramePatches, GivenPatches, pair_correlation
+from companion.method.mapper.database import FeatureDatabase
+from companion.method.mapper.depth_prior import DepthPrior, prior_ranges
+from companion.method.mapper.matching import (
     candidate_pairs,
     gate_and_match_pairs,
     innovation_covariance,
@@ -39,9 +39,9 @@ from companion.mapper.matching import (
     navigation_term_vanishes,
     near_stored_pairs,
 )
-from companion.mapper.projection import CameraPose, camera_ray_from_pixel
-from companion.mapper.update import ekf_update
-from companion.messages import NavState, TerrainPoints
+from companion.method.mapper.projection import CameraPose, camera_ray_from_pixel
+from companion.method.mapper.update import ekf_update
+from companion.method.messages import NavState, TerrainPoints
 
 Detector = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -268,7 +268,7 @@ class Mapper:
         uv_raw = np.asarray(uv_raw, dtype=float).reshape(-1, 2)
         patches = None
         if self.cfg.appearance_patch_px > 0:
-            from companion.mapper.features import as_gray
+            from companion.method.mapper.features import as_gray
 
             # cut later, for the few measurements that need one (appearance.FramePatches)
             patches = FramePatches(as_gray(image), uv_raw, self.cfg.appearance_patch_px)
@@ -276,7 +276,7 @@ class Mapper:
 
     def _harris(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The default detector, built once per image size (its buffers are reused frame to frame)."""
-        from companion.mapper.features import HarrisDetector, as_gray  # separate module, imported lazily
+        from companion.method.mapper.features import HarrisDetector, as_gray  # separate module, imported lazily
 
         gray = as_gray(image)
         if self._detector is None or self._detector_shape != gray.shape:
