@@ -200,7 +200,7 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
     (``control.gil_switch_interval_ms``; None = the configuration's, 1 ms; 0 = Python's default, 5 ms). ``keep_samples``: copy the probe's
     samples (JSON, :mod:`benchmarks.daemon_probe`) to this path. ``worker_policy``: "idle" or
     "nice" lowers the mapper and render threads' priority (an experiment; see the probe).
-    ``mapper_process``: run the daemon's mapper in a child process (companion/mapper_process.py)
+    ``mapper_process``: run the daemon's mapper in a child process (companion/service/mapper_process.py)
     instead of its worker thread. ``camera``: "stream" (default) = the simulator renders the camera
     at the true pose of each exposure and sends the frames over TCP stamped in the autopilot's time
     (``companion sim --camera-listen``; the camera has its own hardware, as on a vehicle);

@@ -1,4 +1,4 @@
-"""``companion run`` with a probe: the same :class:`companion.daemon.Daemon`, started the way
+"""``companion run`` with a probe: the same :class:`companion.service.daemon.Daemon`, started the way
 ``companion run --config FILE`` starts it, that also keeps every latency and jitter sample with the
 time it was taken and writes them to a JSON file when it stops.
 
@@ -14,14 +14,14 @@ frame-to-setpoint latency into its parts:
 
 It also times the synthetic camera's render (``Renderer.render``), which runs inside the daemon's
 process in simulation only, and the map snapshots. ``--mapper-process`` runs the daemon's mapper in
-a child process (companion/mapper_process.py). ``--worker-policy idle|nice`` is an experiment:
+a child process (companion/service/mapper_process.py). ``--worker-policy idle|nice`` is an experiment:
 the mapper thread and the render threads at ``SCHED_IDLE`` or nice +10 (measured worse: a
 low-priority thread preempted while it holds the GIL keeps the event loop waiting).
 
 Nothing in the daemon's code is changed: the probe replaces the daemon's sample windows with
 subclasses that also log, and wraps, on the instance, the frame queue's ``put``, ``_map_frame``,
 ``control_step``, ``save_snapshot`` (and ``_mapper_worker`` for the experiment). It starts the
-daemon through ``companion.daemon._run``, as ``companion run`` does; a renamed attribute is
+daemon through ``companion.service.daemon._run``, as ``companion run`` does; a renamed attribute is
 listed under ``missing`` in the samples instead of failing the run.
 """
 
@@ -38,14 +38,14 @@ import time
 
 def main(argv=None) -> int:
     from companion.config import ConfigError, load_config
-    from companion.daemon import Daemon, Percentiles, _run, setup_logging
+    from companion.service.daemon import Daemon, Percentiles, _run, setup_logging
 
     p = argparse.ArgumentParser(prog="python -m benchmarks.daemon_probe")
     p.add_argument("--config", required=True)
     p.add_argument("--samples", required=True, help="JSON file written at exit")
     p.add_argument("--log-level", default="WARNING")
     p.add_argument("--mapper-process", action="store_true",
-                   help="run the mapper in a child process (companion/mapper_process.py) instead of the daemon's thread")
+                   help="run the mapper in a child process (companion/service/mapper_process.py) instead of the daemon's thread")
     p.add_argument("--worker-policy", choices=("default", "idle", "nice"), default="default",
                    help="experiment: run the mapper thread (and the synthetic camera's render threads) at "
                         "SCHED_IDLE or nice +10, so the event loop's wake-ups preempt them at once")

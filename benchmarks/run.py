@@ -303,7 +303,7 @@ def daemon_section(plan: Plan, args) -> dict:
         print("\n  again with the control loop at normal scheduling (control.realtime_priority: 0):")
         out["normal_scheduling"] = daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print, realtime_priority=0)
         _print_daemon(out["normal_scheduling"])
-        print("\n  again with the mapper in a child process (companion/mapper_process.py):")
+        print("\n  again with the mapper in a child process (companion/service/mapper_process.py):")
         out["mapper_process"] = daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print, mapper_process=True)
         _print_daemon(out["mapper_process"])
         print("\n  again with Python's default GIL switch interval, 5 ms (control.gil_switch_interval_ms: 0):")

@@ -14,7 +14,7 @@ import sys
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("companion.demo", "closed-loop demo: simulated vehicle + daemon + ground station, writes a report"),
-    "run": ("companion.daemon", "run the service (the systemd unit runs this)"),
+    "run": ("companion.service.daemon", "run the service (the systemd unit runs this)"),
     "sim": ("drivers.sim.vehicle", "simulated multirotor that speaks MAVLink (ArduPilot or PX4 flavour)"),
     "quality": ("companion.quality.suite", "the scenario suite: what a pilot sees, over scenarios x seeds x mappers"),
     "replay": ("companion.replay", "run the mapper over a recording as fast as possible"),

@@ -16,11 +16,11 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ is not an installed package
 from benchmarks.common import render_flight  # noqa: E402
 from companion.config import CompanionConfig, replace  # noqa: E402
-from companion.daemon import Daemon  # noqa: E402
-from companion.mapper_process import MapperProcess, MapperProcessError  # noqa: E402
 from companion.method.mapper import Mapper  # noqa: E402
 from companion.method.messages import NavState  # noqa: E402
 from companion.method.terrain.grid import TerrainGrid  # noqa: E402
+from companion.service.daemon import Daemon  # noqa: E402
+from companion.service.mapper_process import MapperProcess, MapperProcessError  # noqa: E402
 
 
 def steps_equal(a, b) -> None:

@@ -20,13 +20,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import MapperConfig
-from companion.daemon import Percentiles
 from companion.method.geometry import quat_to_matrix
 from companion.method.mapper import appearance, matching
 from companion.method.mapper.features import HarrisDetector, _close_pairs, suppress_within
 from companion.method.mapper.mapper import _checked_pose_covariance, check_nav
 from companion.method.mapper.projection import rotation_from_quaternion
 from companion.method.messages import NavState
+from companion.service.daemon import Percentiles
 
 SEEDS = st.integers(0, 2**32 - 1)
 

@@ -142,7 +142,7 @@ def test_the_daemon_and_the_engine_share_the_control_decision():
     assert high.send and high.climb_rate_mps > 0 and np.allclose(high.velocity_ned_mps[:2], [5.0, 0.0], atol=0.5)
     off = Controller(replace(cfg, **{"avoidance.enabled": False})).decide(replace(nav, position_ned_m=np.array([0.0, 0.0, -10.0])), grid)
     assert off.climb_rate_mps == pytest.approx(min(off.command.nominal_climb_mps, cfg.avoidance.max_climb_mps))
-    from companion import daemon
+    from companion.service import daemon
     assert daemon.Controller is Controller
 
 

@@ -1,4 +1,4 @@
-"""Real-time scheduling of the control loop's thread (companion/realtime.py, control.realtime_priority):
+"""Real-time scheduling of the control loop's thread (companion/service/realtime.py, control.realtime_priority):
 the function on its own thread, its refusal, and the daemon as a real process, whose loop thread
 alone is SCHED_FIFO while its mapper, executor and Zenoh threads stay at normal scheduling."""
 
@@ -15,8 +15,8 @@ import time
 
 import pytest
 
-from companion import realtime
 from companion.config import ConfigError, load_config
+from companion.service import realtime
 from tests.processes import companion, free_port, stop, write_config
 
 pytestmark = pytest.mark.skipif(not realtime.supported(), reason="thread scheduling policies are Linux's")

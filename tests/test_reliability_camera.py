@@ -2,7 +2,7 @@
 shows while mapping goes on with the good ones; a camera that vanishes comes back (V4L2 device node that
 disappears, synthetic camera without a pose, recording whose files vanish).
 
-The service runs in this process (``companion.daemon.Daemon``) so its parts can be inspected; navigation is
+The service runs in this process (``companion.service.daemon.Daemon``) so its parts can be inspected; navigation is
 pushed into its buffer directly (a hovering vehicle), the autopilot link waits on a port nobody uses.
 """
 
@@ -67,7 +67,7 @@ def hover(t: float) -> NavState:
 @contextlib.asynccontextmanager
 async def service(cfg: CompanionConfig, build_camera=None):
     """The daemon in this process, with navigation pushed at 50 Hz; ended as SIGTERM would end it."""
-    from companion.daemon import Daemon
+    from companion.service.daemon import Daemon
 
     d = Daemon(cfg)
     if build_camera is not None:

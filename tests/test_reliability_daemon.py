@@ -230,7 +230,7 @@ class ManualClock(Clock):
 
 
 def make_daemon(directory: Path, **persistence_fields):
-    from companion.daemon import Daemon
+    from companion.service.daemon import Daemon
 
     cfg = replace_config(CompanionConfig(), **{"persistence.directory": str(directory), "zenoh.enabled": False,
                                                **{f"persistence.{k}": v for k, v in persistence_fields.items()}})

@@ -746,7 +746,7 @@ def daemon_config(tmp_path: Path, relay: UdpRelay, **changes) -> CompanionConfig
 @contextlib.asynccontextmanager
 async def daemon_running(cfg: CompanionConfig):
     """The service in this process (its parts inspectable), ended as SIGTERM would end it."""
-    from companion.daemon import Daemon
+    from companion.service.daemon import Daemon
 
     daemon = Daemon(cfg)
     task = asyncio.create_task(daemon.run(), name="daemon")

@@ -2,7 +2,7 @@
 
 import socket
 
-from companion.sdnotify import SystemdNotifier
+from companion.service.sdnotify import SystemdNotifier
 
 
 def test_ready_watchdog_status_reach_the_socket(tmp_path):

@@ -13,7 +13,7 @@ priority (nice, ``SCHED_IDLE``) made things worse: preempted while holding the G
 the loop longer (priority inversion).
 
 :class:`MapperProcess` offers the mapper's ``step(nav, image) -> MapperStep``. The child is a
-plain ``python -m companion.mapper_process`` (not multiprocessing's spawn, which would import the
+plain ``python -m companion.service.mapper_process`` (not multiprocessing's spawn, which would import the
 caller's main module again) connected by a Unix socket pair. Each step copies the image into a
 shared memory buffer (an anonymous file whose descriptor is passed over the socket) and sends the
 navigation state; one frame is in flight at a time. The child keeps its own copy of the terrain
@@ -132,7 +132,7 @@ def serve(conn: Connection) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m companion.mapper_process FD``: serve the daemon on the socket descriptor FD."""
+    """``python -m companion.service.mapper_process FD``: serve the daemon on the socket descriptor FD."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is for the daemon, which stops the child
     fd = int((sys.argv[1:] if argv is None else argv)[0])
     serve(Connection(fd))
@@ -173,7 +173,7 @@ class MapperProcess:
             self._stop_child()
             ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
             try:
-                proc = subprocess.Popen([sys.executable, "-m", "companion.mapper_process", str(theirs.fileno())],
+                proc = subprocess.Popen([sys.executable, "-m", "companion.service.mapper_process", str(theirs.fileno())],
                                         pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
             except OSError as exc:
                 ours.close()

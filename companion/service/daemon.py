@@ -14,7 +14,7 @@ The mapper is CPU work; it runs in one worker thread owned by the daemon (NumPy 
 release the GIL; or, with ``mapper_process=True``, in a child process driven by that thread)
 fed by a bounded queue that drops the oldest frame, so a slow frame never delays the control loop. The grid is shared between that thread and the event loop under one
 lock. With ``control.realtime_priority`` the event loop's thread runs ``SCHED_FIFO`` and preempts
-the mapper thread the moment a tick is due (companion/realtime.py). SIGTERM or SIGINT ends every
+the mapper thread the moment a tick is due (companion/service/realtime.py). SIGTERM or SIGINT ends every
 task, saves the map and exits within about two seconds.
 """
 
@@ -37,10 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from companion import realtime
 from companion.config import CompanionConfig, ConfigError, load_config
 from companion.config import replace as replace_config
-from companion.mapper_process import MapperProcess
 from companion.method.avoidance import AvoidanceCommand
 from companion.method.control import Controller
 from companion.method.geometry import camera_from_config
@@ -49,7 +47,9 @@ from companion.method.messages import Frame, NavState
 from companion.method.terrain.codec import encode_tile
 from companion.method.terrain.grid import TerrainGrid
 from companion.method.terrain.persistence import count_known_cells, load_latest, snapshot_bytes, write_snapshot_bytes
-from companion.sdnotify import SystemdNotifier
+from companion.service import realtime
+from companion.service.mapper_process import MapperProcess
+from companion.service.sdnotify import SystemdNotifier
 from drivers.clock import Clock
 
 log = logging.getLogger("companion")
@@ -164,7 +164,7 @@ class Daemon:
         self.grid = self._load_map()
         self.grid_lock = threading.Lock()
         # The mapper runs in the worker thread; mapper_process=True runs it in a child process instead
-        # (companion/mapper_process.py: the control loop never waits for a GIL the mapper holds, at
+        # (companion/service/mapper_process.py: the control loop never waits for a GIL the mapper holds, at
         # ~1.5 ms of inter-process cost per frame; measured no better here, docs/performance.md).
         self.mapper: Mapper | MapperProcess
         if mapper_process:
@@ -611,7 +611,7 @@ class Daemon:
 
     async def _save_snapshot_in_background(self) -> bool:
         """:meth:`save_snapshot` on its own thread, at normal scheduling (a thread the loop's thread
-        starts does not inherit its real-time policy, companion/realtime.py): writing the map is
+        starts does not inherit its real-time policy, companion/service/realtime.py): writing the map is
         bulk work that must not hold up the control loop or the I/O threads."""
         if self._snapshot_executor is None:
             self._snapshot_executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="companion-snapshot")
@@ -631,7 +631,7 @@ class Daemon:
         self._loop = asyncio.get_running_loop()
         if self.cfg.control.realtime_priority > 0:
             # The I/O threads (camera reads: on the frame's way to the setpoint) one priority below
-            # the control loop's thread (companion/realtime.py); normal scheduling where refused.
+            # the control loop's thread (companion/service/realtime.py); normal scheduling where refused.
             self._loop.set_default_executor(concurrent.futures.ThreadPoolExecutor(
                 thread_name_prefix="companion-io", initializer=realtime.below,
                 initargs=(self.cfg.control.realtime_priority,)))
@@ -675,7 +675,7 @@ class Daemon:
 
     def _enter_realtime(self) -> realtime.Scheduling | None:
         """Put the event loop's thread under ``SCHED_FIFO`` at ``control.realtime_priority``
-        (companion/realtime.py): it preempts the mapper thread, which stays at normal scheduling,
+        (companion/service/realtime.py): it preempts the mapper thread, which stays at normal scheduling,
         as do the snapshot thread and the threads it starts from now on (``SCHED_RESET_ON_FORK``);
         the executor's threads run one priority below it (:meth:`run`). Returns the thread's
         scheduling before (None: unchanged)."""
