@@ -43,8 +43,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from companion import report  # noqa: E402
 from companion.config import CompanionConfig, replace  # noqa: E402
+from companion.desk import report  # noqa: E402
+from companion.desk.quality import engine  # noqa: E402
 from companion.method.avoidance import PullUpLaw, nominal_climb_rate  # noqa: E402
 from companion.method.geometry import camera_from_config, quat_to_matrix  # noqa: E402
 from companion.method.guidance import WaypointGuidance  # noqa: E402
@@ -53,7 +54,6 @@ from companion.method.mapper.features import HarrisDetector, as_gray  # noqa: E4
 from companion.method.messages import TerrainPoints  # noqa: E402
 from companion.method.navigation.assembler import NavAssembler  # noqa: E402
 from companion.method.terrain.grid import TerrainGrid  # noqa: E402
-from companion.quality import engine  # noqa: E402
 from drivers.sim.ardupilot import GUIDED, ArduPilotCopter  # noqa: E402
 from drivers.sim.renderer import Renderer, RenderOptions  # noqa: E402
 from drivers.sim.world import World  # noqa: E402
@@ -437,7 +437,7 @@ def map_figures(grid: TerrainGrid, world: World, building: str = "building") -> 
     flat = hi <= 1e-6  # flat ground (no structure within a cell)
     ob = world.obstacle(building)
     fp = np.asarray(ob.footprint_ne_m, float)
-    # The footprint grown by one cell, as the demo's metric (companion.report.footprint_cells): a
+    # The footprint grown by one cell, as the demo's metric (companion.desk.report.footprint_cells): a
     # wall's points fall half a cell either side of it.
     centres = np.column_stack([cn, ce])
     inside = _inside_polygon(cn, ce, fp) | (report.distance_to_polygon_edges(centres, fp) <= c)

@@ -13,11 +13,11 @@ import sys
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("companion.demo", "closed-loop demo: simulated vehicle + daemon + ground station, writes a report"),
+    "demo": ("companion.desk.demo", "closed-loop demo: simulated vehicle + daemon + ground station, writes a report"),
     "run": ("companion.service.daemon", "run the service (the systemd unit runs this)"),
     "sim": ("drivers.sim.vehicle", "simulated multirotor that speaks MAVLink (ArduPilot or PX4 flavour)"),
-    "quality": ("companion.quality.suite", "the scenario suite: what a pilot sees, over scenarios x seeds x mappers"),
-    "replay": ("companion.replay", "run the mapper over a recording as fast as possible"),
+    "quality": ("companion.desk.quality.suite", "the scenario suite: what a pilot sees, over scenarios x seeds x mappers"),
+    "replay": ("companion.desk.replay", "run the mapper over a recording as fast as possible"),
     "ground": ("drivers.ground_station", "ground-station subscriber: reassembles the map from Zenoh"),
     "config": ("companion.config_cli", "print the default configuration or check a file"),
 }
@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(module.main(args) or 0)
     except RuntimeError as exc:
-        from companion.plots import DeskExtraMissing  # only a desk tool's figures raise it
+        from companion.desk.plots import DeskExtraMissing  # only a desk tool's figures raise it
 
         if not isinstance(exc, DeskExtraMissing):
             raise

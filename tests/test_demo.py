@@ -1,6 +1,6 @@
 """`companion demo` and its report.
 
-Unit tests (no processes): the metrics of companion/report.py on synthetic trajectories and maps.
+Unit tests (no processes): the metrics of companion/desk/report.py on synthetic trajectories and maps.
 End to end: the demo as a user runs it (subprocesses, MAVLink over TCP/UDP loopback, Zenoh),
 with the demo's criteria asserted on its metrics.json.
 """
@@ -20,8 +20,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion import report
 from companion.cli import main as cli_main
+from companion.desk import report
 
 SQUARE = np.array([[90.0, -10.0], [110.0, -10.0], [110.0, 10.0], [90.0, 10.0]])  # the default building
 CIRCUIT = np.array([[0.0, 0.0], [200.0, 0.0], [200.0, 60.0], [0.0, 60.0]])
@@ -280,7 +280,7 @@ def test_bad_options_exit_2_naming_the_problem(argv, message, capsys, tmp_path):
 
 
 def test_progress_is_plain_lines_when_stderr_is_not_a_terminal(tmp_path):
-    from companion.demo import Progress, progress_line
+    from companion.desk.demo import Progress, progress_line
 
     with open(tmp_path / "err.txt", "w") as f:
         p = Progress(f, every_s=0.0)

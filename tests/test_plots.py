@@ -12,8 +12,8 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-from companion import plots  # noqa: E402
-from companion.plots import PALETTE, Series, bar_chart, height_map, line_chart, nice_ticks  # noqa: E402
+from companion.desk import plots  # noqa: E402
+from companion.desk.plots import PALETTE, Series, bar_chart, height_map, line_chart, nice_ticks  # noqa: E402
 
 
 def test_nice_ticks_cover_range_with_round_steps():
@@ -105,7 +105,7 @@ def test_the_service_import_path_never_loads_matplotlib():
     then the daemon: none of that may import matplotlib, which the vehicle does not install."""
     code = ("import sys; from companion import cli; args = cli.build_parser().parse_args(['run', '--config', 'config/sitl.yaml']); "
             "import importlib; importlib.import_module(args._module); "
-            "print('matplotlib' in sys.modules, 'companion.plots' in sys.modules)")
+            "print('matplotlib' in sys.modules, 'companion.desk.plots' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                          env={**os.environ}).stdout.split()
     assert out == ["False", "True"], out

@@ -1,4 +1,4 @@
-"""The scenario suite (companion/quality/): the figures proven on a record whose every figure has a
+"""The scenario suite (companion/desk/quality/): the figures proven on a record whose every figure has a
 known value, the engine's determinism, the control decision the daemon and the engine share, the
 command end to end (its CI-sized subset) and the validation of its overrides."""
 
@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion import report
 from companion.config import ConfigError, replace
+from companion.desk import report
+from companion.desk.quality import engine, metrics
+from companion.desk.quality.scenarios import flight_config, parse_set
 from companion.method.control import Controller
 from companion.method.messages import NavState
 from companion.method.terrain.grid import TerrainGrid
-from companion.quality import engine, metrics
-from companion.quality.scenarios import flight_config, parse_set
 from drivers.sim.world import World
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -217,7 +217,7 @@ def test_overrides_apply_in_order_and_a_scenario_carries_its_settings():
 
 
 def test_every_scenario_loads_and_flies_over_its_obstacles():
-    from companion.quality.suite import scenario_names
+    from companion.desk.quality.suite import scenario_names
 
     names = scenario_names()
     assert len(names) >= 8
@@ -269,9 +269,9 @@ def test_demo_service_configuration_layers_in_order(tmp_path):
     """defaults < the demo's own settings < the scenario's service section < --config < --set."""
     import argparse
 
-    from companion import demo
+    from companion.desk import demo
     from companion.config import config_from_dict
-    from companion.quality.scenarios import override_layers, world_for
+    from companion.desk.quality.scenarios import override_layers, world_for
 
     cfg_file = tmp_path / "service.yaml"
     cfg_file.write_text("camera: {mount_pitch_deg: -28.0}\nmapper: {max_features: 70}\n")

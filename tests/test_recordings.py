@@ -1,4 +1,4 @@
-"""Reading recordings for replay (companion/recordings.py): frame conventions, the three layouts,
+"""Reading recordings for replay (companion/desk/recordings.py): frame conventions, the three layouts,
 damage counting, export to the TUM form, and black borders in the images they deliver."""
 
 from __future__ import annotations
@@ -15,9 +15,7 @@ from hypothesis import strategies as st
 
 import replay_synthetic as rs
 from companion.config import CompanionConfig
-from companion.method.geometry import CameraMount, PinholeCamera, euler_to_matrix
-from companion.method.terrain.grid import TerrainGrid
-from companion.recordings import (
+from companion.desk.recordings import (
     IDENTITY_MOUNT,
     Overrides,
     PoseTable,
@@ -32,7 +30,9 @@ from companion.recordings import (
     pose_covariance,
     read_gray,
 )
-from companion.replay import JPEG_BLACK_LEVEL, black_level_for, build_mapper, clamp_black
+from companion.desk.replay import JPEG_BLACK_LEVEL, black_level_for, build_mapper, clamp_black
+from companion.method.geometry import CameraMount, PinholeCamera, euler_to_matrix
+from companion.method.terrain.grid import TerrainGrid
 
 AXES = ["x", "-x", "y", "-y", "z", "-z"]
 

@@ -1,4 +1,4 @@
-"""``companion replay``: the mapper over recordings (companion/replay.py, docs/replay.md).
+"""``companion replay``: the mapper over recordings (companion/desk/replay.py, docs/replay.md).
 
 Every recording here is the same simulated flight (tests/replay_synthetic.py: flat textured
 ground, 15 m up, 6 m/s north, camera 45 deg down, 60 frames at 10 Hz) written in one layout.
@@ -18,12 +18,12 @@ import yaml
 import replay_synthetic as rs
 from companion import cli
 from companion.config import CompanionConfig
-from companion.map_metrics import bin_heights, compare, map_cells, read_reference_csv, reference_metrics
+from companion.desk.map_metrics import bin_heights, compare, map_cells, read_reference_csv, reference_metrics
+from companion.desk.recordings import WorldFrame, export_tum, open_recording, pose_covariance, recording_config
+from companion.desk.replay import EXIT_NOTHING_MAPPED, build_mapper, load_reference, run_replay
 from companion.method.geometry import matrix_to_quat
 from companion.method.messages import NavState
 from companion.method.terrain.grid import TerrainGrid
-from companion.recordings import WorldFrame, export_tum, open_recording, pose_covariance, recording_config
-from companion.replay import EXIT_NOTHING_MAPPED, build_mapper, load_reference, run_replay
 
 # Region of the flight's map, and the accuracy the mapper reaches on it today (measured: median
 # |error| ~0.02 m, RMSE ~0.07 m, 100 % of cells within 1 m). Since the mapper emits a point only

@@ -55,7 +55,7 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def _overrides(args) -> tuple[tuple[str, dict], ...]:
-    from companion.quality.scenarios import override_layers
+    from companion.desk.quality.scenarios import override_layers
 
     return override_layers(args.config, args.set)
 
@@ -73,9 +73,9 @@ def fly_one(job: tuple[str, int, str, int, tuple]) -> dict[str, Any]:
     scenario, seed, param, laps, overrides = job
     t0 = time.perf_counter()
     try:
-        from companion import report
-        from companion.quality import engine, metrics
-        from companion.quality.scenarios import flight_config
+        from companion.desk import report
+        from companion.desk.quality import engine, metrics
+        from companion.desk.quality.scenarios import flight_config
         from drivers.sim.world import World
 
         if scenario not in _WORLDS:
@@ -297,7 +297,7 @@ def headline(runs: list[dict]) -> list[str]:
 
 def worst_first_pass_figures(results: list[dict], folder: Path, rel_prefix: str) -> dict[str, str]:
     """One side profile per scenario: its run with the least first-lap clearance fraction."""
-    from companion.quality.figures import side_profile
+    from companion.desk.quality.figures import side_profile
 
     out = {}
     by_scenario: dict[str, list[dict]] = {}
@@ -368,7 +368,7 @@ class Progress:
 
 
 def main(args: argparse.Namespace) -> int:
-    from companion.quality.scenarios import flight_config
+    from companion.desk.quality.scenarios import flight_config
     from drivers.sim.world import World
 
     try:

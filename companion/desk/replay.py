@@ -1,6 +1,6 @@
 """``companion replay DIR``: the mapper over a recording, as fast as possible (docs/replay.md).
 
-Reads any layout :mod:`companion.recordings` knows (the service's own ``--record`` folder, a TUM
+Reads any layout :mod:`companion.desk.recordings` knows (the service's own ``--record`` folder, a TUM
 folder, EuRoC MAV), runs the same pipeline as the daemon's mapper worker frame by frame
 (Harris detector -> :class:`Mapper` with the terrain map as depth prior -> :class:`TerrainGrid`),
 and writes to ``--output``:
@@ -29,12 +29,10 @@ import numpy as np
 
 from companion import config as config_mod
 from companion.config import CompanionConfig, ConfigError
-from companion.map_metrics import CellHeights, compare, bin_heights, dense_heights, map_cells, read_reference_csv
-from companion.method.mapper import Mapper
-from companion.method.mapper.features import HarrisDetector
-from companion import plots
-from companion.plots import height_map
-from companion.recordings import (
+from companion.desk import plots
+from companion.desk.map_metrics import CellHeights, compare, bin_heights, dense_heights, map_cells, read_reference_csv
+from companion.desk.plots import height_map
+from companion.desk.recordings import (
     Overrides,
     Recording,
     RecordingError,
@@ -43,6 +41,8 @@ from companion.recordings import (
     reason_key,
     recording_config,
 )
+from companion.method.mapper import Mapper
+from companion.method.mapper.features import HarrisDetector
 from companion.method.terrain.grid import TerrainGrid
 
 METRICS_JSON = "metrics.json"
@@ -120,7 +120,7 @@ class Reference:
 def load_reference(path: str | Path, recording: Recording, frame: str = "map", statistic: str = "mean") -> Reference:
     """Read a reference CSV. ``frame="map"``: columns are north, east, altitude up (m) in the map's
     local frame. ``frame="dataset"``: columns are x, y, z in the recording's own world frame (world
-    units), converted like its poses (:class:`companion.recordings.WorldFrame`; for the service's
+    units), converted like its poses (:class:`companion.desk.recordings.WorldFrame`; for the service's
     own recordings that frame is NED, z down)."""
     ref = read_reference_csv(path)
     xyz = ref.xyz

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from companion import report
+from companion.desk import report
 from companion.method.avoidance import stopping_time
 from companion.config import AvoidanceConfig
 

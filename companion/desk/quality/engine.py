@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from companion import report
+from companion.desk import report
 from companion.method.avoidance import margin_height
 from companion.config import CompanionConfig
 from companion.method.control import Controller

@@ -14,7 +14,7 @@ synthetic camera and keeps its clearance. The truth trajectory (SIM_STATE) split
 at each lap's end the ground station's map is kept. After the laps asked for, the service and
 the simulator get SIGTERM (the service must save its map and exit within a few seconds).
 
-Then :mod:`companion.report` turns trajectories and maps into ``metrics.json`` and the PNGs
+Then :mod:`companion.desk.report` turns trajectories and maps into ``metrics.json`` and the PNGs
 (docs/demo.md describes both). Nothing is tuned per run: the figures are what the loop did.
 """
 
@@ -37,8 +37,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from companion import plots, report
 from companion.config import ConfigError
+from companion.desk import plots, report
 
 PARAMETERISATIONS = ("inverse_depth", "cartesian")
 DEFAULT_SPEEDUP = 3.0          # both runs of 3 laps in about 3.5 min on the 2-core machine, frames kept up (docs/demo.md)
@@ -280,9 +280,9 @@ def free_tcp_port() -> int:
 
 def daemon_config(world, opts, parameterisation: str, tcp_port: int, zenoh_port: int, map_dir: Path) -> dict:
     """The service's configuration for one run (written to ``<run>/daemon.yaml``): what the scenario's
-    circuit implies (companion/quality/scenarios.py, shared with the scenario suite), the demo's
+    circuit implies (companion/desk/quality/scenarios.py, shared with the scenario suite), the demo's
     own links and folders, then the scenario's ``service:`` settings, ``--config`` and ``--set``."""
-    from companion.quality.scenarios import circuit_settings, merge_layers
+    from companion.desk.quality.scenarios import circuit_settings, merge_layers
 
     data = circuit_settings(world, opts.scenario, parameterisation, int(opts.seed), float(opts.camera_rate))
     data["link"] = {"connection": f"tcp:127.0.0.1:{tcp_port}"}
@@ -839,7 +839,7 @@ def _check_options(args: argparse.Namespace) -> None:
 def main(args: argparse.Namespace) -> int:
     from drivers.sim.world import World
 
-    from companion.quality.scenarios import flight_config, override_layers, world_for
+    from companion.desk.quality.scenarios import flight_config, override_layers, world_for
 
     try:
         _check_options(args)
