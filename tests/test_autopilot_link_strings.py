@@ -2,7 +2,7 @@
 
 import pytest
 
-from drivers.autopilot import Endpoint, parse_connection, statustext_chunks
+from drivers.autopilot.link import Endpoint, parse_connection, statustext_chunks
 
 
 @pytest.mark.parametrize(

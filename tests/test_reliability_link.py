@@ -32,9 +32,9 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from companion.config import CompanionConfig, ConfigError, replace
 from companion.method.geometry import euler_to_quat
 from companion.method.navigation.assembler import MAX_FUTURE_S
-from drivers.autopilot import AutopilotLink
+from drivers.autopilot.framing import CATEGORIES, MavlinkFramer, Rejected, SignatureCheck, signature_timestamp
+from drivers.autopilot.link import AutopilotLink
 from drivers.clock import Clock
-from drivers.mavlink_framing import CATEGORIES, MavlinkFramer, Rejected, SignatureCheck, signature_timestamp
 from tests.test_autopilot_link import Peer, make_cfg, running, until
 from tests.test_reliability_daemon import ManualClock
 

@@ -146,7 +146,7 @@ class Daemon:
 
     def __init__(self, cfg: CompanionConfig, *, record_dir: str | None = None, clock: Clock | None = None,
                  mapper_process: bool = False):
-        from drivers.autopilot import AutopilotLink  # drivers import companion, not the reverse at import time
+        from drivers.autopilot.link import AutopilotLink  # loaded with a daemon, not with the command line
 
         if cfg.control.commanding_enabled and len(cfg.control.waypoints_ne_m) < 2:
             raise ConfigError(

@@ -2,7 +2,7 @@
 
 Pure: messages go in as decoded objects (pymavlink messages: ``msg.get_type()`` and attributes)
 or plain dicts (``{"mavpackettype": "LOCAL_POSITION_NED", "x": ...}``, as ``msg.to_dict()`` gives), with the companion time
-at which they arrived; :class:`NavState` comes out. No sockets here (``drivers/autopilot.py``
+at which they arrived; :class:`NavState` comes out. No sockets here (``drivers/autopilot/``
 owns the link), so every model can be tested from numbers alone.
 
 State

@@ -30,7 +30,7 @@ process-wide environment variable and dialect global, and it has no asyncio inte
 the sockets are asyncio transports (UDP datagram endpoint, TCP stream, a non-blocking tty fd on
 ``loop.add_reader``), so reading never blocks the event loop and no thread is needed; pymavlink's
 generated MAVLink 2 ``ardupilotmega`` dialect does the encoding, CRC and decoding. Framing is
-:class:`drivers.mavlink_framing.MavlinkFramer`, which resynchronises after every bad frame (pymavlink's
+:class:`drivers.autopilot.framing.MavlinkFramer`, which resynchronises after every bad frame (pymavlink's
 robust parser drops up to 280 bytes after a stray start byte, valid frames included) and checks
 MAVLink 2 signatures itself: bad input becomes a counted rejection (by category, logged once per
 kind and then at most every 30 s), never an exception, and the valid frames around it get through.
@@ -62,10 +62,10 @@ from companion.config import CompanionConfig, ConfigError
 from companion.method.navigation.assembler import HANDLED_MESSAGES, NavAssembler, TruthPose
 from companion.method.navigation.buffer import NavBuffer
 from companion.method.navigation.timesync import TimeSync
+from drivers.autopilot.framing import MavlinkFramer, Rejected, SignatureCheck
 from drivers.clock import Clock
-from drivers.mavlink_framing import MavlinkFramer, Rejected, SignatureCheck
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("drivers.autopilot")  # the link's logger, whichever of its files speaks
 
 # --------------------------------------------------------------------------------------------
 # MAVLink facts used below (common.xml, ardupilotmega.xml)
