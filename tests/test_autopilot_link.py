@@ -20,7 +20,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from companion.config import CompanionConfig, replace
 from companion.method.geometry import euler_to_quat
 from companion.method.navigation.assembler import quat_to_euler
-from drivers.autopilot.link import TYPEMASK_VELOCITY_ONLY, AutopilotLink
+from drivers.autopilot.link import AutopilotLink
+from drivers.autopilot.protocol import TYPEMASK_VELOCITY_ONLY
 from drivers.clock import Clock
 
 AP_AHEAD_S = 876.543  # the autopilot booted this long before the companion clock started

@@ -2,7 +2,8 @@
 
 import pytest
 
-from drivers.autopilot.link import Endpoint, parse_connection, statustext_chunks
+from drivers.autopilot.connection import Endpoint, parse_connection
+from drivers.autopilot.protocol import statustext_chunks
 
 
 @pytest.mark.parametrize(

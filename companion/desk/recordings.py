@@ -765,7 +765,7 @@ def open_euroc(path: Path, nav: NavConfig, overrides: Overrides = Overrides(), m
 
 class TelemetryNav:
     """Navigation states from a telemetry log, built as the autopilot link builds them live
-    (drivers/autopilot/link.py): the first autopilot HEARTBEAT picks the target; TIMESYNC answers
+    (drivers/autopilot/receive.py): the first autopilot HEARTBEAT picks the target; TIMESYNC answers
     (``ts1`` = our send time in ns + 1, companion clock) and SYSTEM_TIME feed :class:`TimeSync`;
     an autopilot reboot (boot clock going backwards) or an estimator reset clears the state; the
     navigation messages go to :class:`NavAssembler` and its states into a :class:`NavBuffer`.
