@@ -19,7 +19,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion.config import CompanionConfig, replace
 from companion.method.geometry import euler_to_quat
-from companion.method.navigation.assembler import quat_to_euler
+from companion.method.navigation.covariance import quat_to_euler
 from drivers.autopilot.link import AutopilotLink
 from drivers.autopilot.protocol import TYPEMASK_VELOCITY_ONLY
 from drivers.clock import Clock

@@ -10,16 +10,13 @@ from hypothesis import strategies as st
 
 from companion.config import NavConfig
 from companion.method.geometry import euler_to_matrix, euler_to_quat, matrix_to_quat, quat_to_matrix
-from companion.method.navigation.assembler import (
-    ARDUPILOT_EARTH_RADIUS_M,
-    NavAssembler,
+from companion.method.navigation.assembler import ARDUPILOT_EARTH_RADIUS_M, GeoOrigin, NavAssembler, geodetic_to_ned
+from companion.method.navigation.covariance import (
     apply_floors,
     covariance_block,
     covariance_problem,
     euler_covariance_to_rotvec,
     euler_rate_jacobian_ned,
-    geodetic_to_ned,
-    GeoOrigin,
     quat_to_euler,
     reported_covariance,
     rotvec_covariance_to_euler,

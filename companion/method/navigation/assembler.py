@@ -1,4 +1,4 @@
-"""NavState assembly from what the autopilot actually sends, and the covariance models.
+"""NavState assembly from what the autopilot actually sends.
 
 Pure: messages go in as decoded objects (pymavlink messages: ``msg.get_type()`` and attributes)
 or plain dicts (``{"mavpackettype": "LOCAL_POSITION_NED", "x": ...}``, as ``msg.to_dict()`` gives), with the companion time
@@ -11,33 +11,10 @@ State
     message; the other half is carried to that time (position by its velocity, attitude by its
     body rates), and only if it is at most ``nav.max_skew_s`` away.
 
-Covariance (9x9 over [position m, velocity m/s, attitude error rad], the attitude error being a
-NED rotation vector with ``R_true = Exp(dtheta) R_est``), chosen per block from the best evidence
-that is valid and younger than ``nav.covariance_max_age_s``:
-
-====================  ==========================================================================
-position              ODOMETRY > LOCAL_POSITION_NED_COV > ESTIMATOR_STATUS (accuracies) >
-                      EKF_STATUS_REPORT(+GPS_RAW_INT) heuristic > GPS_RAW_INT > floors
-velocity              ODOMETRY > LOCAL_POSITION_NED_COV > ESTIMATOR_STATUS heuristic >
-                      EKF_STATUS_REPORT(+GPS_RAW_INT) heuristic > GPS_RAW_INT > floors
-attitude              ODOMETRY > ATTITUDE_QUATERNION_COV > ESTIMATOR_STATUS heuristic >
-                      EKF_STATUS_REPORT heuristic > floors
-====================  ==========================================================================
-
-The configured floors (``nav.*_floor_*``) are always applied as lower bounds on the marginal
-standard deviations (a non-negative diagonal is added, which keeps the matrix PSD and the
-cross-covariances). :attr:`NavState.covariance_source` names the messages used, with ``+floors``
-when any block is floor-based (a heuristic that scales the floors, or the floors alone):
-``"ODOMETRY"``, ``"LOCAL_POSITION_NED_COV+ATTITUDE_QUATERNION_COV"``,
-``"ESTIMATOR_STATUS+floors"``, ``"EKF_STATUS_REPORT+GPS_RAW_INT+floors"``, ``"floors"``.
-
-The heuristic for innovation test ratios (ArduPilot EKF_STATUS_REPORT "variances", which are
-``sqrt`` of the EKF's innovation test ratios, dimensionless, < 0.5 normal, >= 1 measurement
-rejected; PX4 ESTIMATOR_STATUS ``*_ratio``): ``sigma = base * max(1, ratio / ratio_good)``. It says
-"when the filter's innovations are larger than it expects, its own uncertainty is probably too
-small by about that factor". It is a heuristic, not a covariance; the status says so by naming
-the source. ``base`` is the GPS accuracy when GPS_RAW_INT reports one (h_acc, v_acc in mm,
-vel_acc in mm/s), else the floor.
+Covariance (9x9 over [position m, velocity m/s, attitude error rad]): each message's evidence is
+validated and converted here on arrival, and the models of :mod:`~companion.method.navigation.covariance`
+choose per block from the best evidence that is valid and younger than ``nav.covariance_max_age_s``;
+:attr:`NavState.covariance_source` names the messages used.
 
 Bad inputs are rejected and counted per reason (:class:`RejectionCounter`): non-finite positions,
 quaternions off unit norm by more than 1e-3 (slightly off: normalised), negative or non-finite
@@ -57,6 +34,18 @@ import numpy as np
 from companion.config import NavConfig
 from companion.method.geometry import quat_to_matrix
 from companion.method.messages import NavState
+from companion.method.navigation.covariance import (
+    EVIDENCE_KINDS,
+    Evidence,
+    covariance_block,
+    covariance_from_evidence,
+    covariance_problem,
+    euler_covariance_to_rotvec,
+    euler_rate_jacobian_ned,
+    quat_to_euler,
+    reported_covariance,
+    source_string,
+)
 
 # --------------------------------------------------------------------------------------------
 # MAVLink constants used here (values from common.xml / ardupilotmega.xml)
@@ -110,145 +99,6 @@ STATE_MESSAGES = ("LOCAL_POSITION_NED", "ATTITUDE_QUATERNION", "ODOMETRY")
 COVARIANCE_MESSAGES = ("LOCAL_POSITION_NED_COV", "ATTITUDE_QUATERNION_COV", "ESTIMATOR_STATUS", "EKF_STATUS_REPORT", "GPS_RAW_INT")
 CONTEXT_MESSAGES = ("SYSTEM_TIME", "GPS_GLOBAL_ORIGIN", "HOME_POSITION", "SIM_STATE")
 HANDLED_MESSAGES = frozenset(STATE_MESSAGES + COVARIANCE_MESSAGES + CONTEXT_MESSAGES)
-
-
-# --------------------------------------------------------------------------------------------
-# Covariance conversions (pure maths, batched where it matters)
-# --------------------------------------------------------------------------------------------
-
-
-def upper_triangle_to_matrix(values: np.ndarray, n: int) -> np.ndarray:
-    """Symmetric (n, n) matrix from its row-major upper triangle incl. the diagonal, n(n+1)/2 values.
-
-    MAVLink's ``pose_covariance[21]`` (n=6), ``covariance[45]`` of LOCAL_POSITION_NED_COV (n=9).
-    """
-    values = np.asarray(values, dtype=float).reshape(-1)
-    if values.size != n * (n + 1) // 2:
-        raise ValueError(f"upper triangle of a {n}x{n} matrix needs {n * (n + 1) // 2} values, got {values.size}")
-    out = np.zeros((n, n))
-    rows, cols = np.triu_indices(n)  # row-major order, as MAVLink lays it out
-    out[rows, cols] = values
-    out[cols, rows] = values
-    return out
-
-
-def quat_to_euler(q_wxyz: np.ndarray) -> tuple[float, float, float]:
-    """ZYX (roll, pitch, yaw) of a body->NED quaternion (rad)."""
-    R = quat_to_matrix(q_wxyz)
-    roll = math.atan2(R[2, 1], R[2, 2])
-    pitch = -math.asin(max(-1.0, min(1.0, R[2, 0])))
-    yaw = math.atan2(R[1, 0], R[0, 0])
-    return roll, pitch, yaw
-
-
-def euler_rate_jacobian_ned(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """E (3, 3) with ``dtheta_ned = E @ [droll, dpitch, dyaw]`` for R = Rz(yaw) Ry(pitch) Rx(roll).
-
-    Derivation: dR R^T = [e_z]x dyaw + [Rz e_y]x dpitch + [Rz Ry e_x]x droll, so the columns of E
-    are the roll axis after yaw and pitch, the pitch axis after yaw, and the down axis. ``roll``
-    does not appear; E is singular at pitch = +-90 deg (gimbal lock), where the Euler covariance
-    cannot carry full rank anyway.
-    """
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    return np.array(
-        [
-            [cy * cp, -sy, 0.0],
-            [sy * cp, cy, 0.0],
-            [-sp, 0.0, 1.0],
-        ]
-    )
-
-
-def euler_covariance_to_rotvec(cov_rpy: np.ndarray, q_wxyz: np.ndarray) -> np.ndarray:
-    """Covariance (3, 3) of (roll, pitch, yaw) at attitude q -> covariance of the NED rotation-vector error.
-
-    First order: ``dtheta = E dEuler`` so ``P_theta = E P_rpy E^T`` (:func:`euler_rate_jacobian_ned`).
-    This is how ODOMETRY.pose_covariance and ATTITUDE_QUATERNION_COV.covariance (both documented
-    by MAVLink as roll/pitch/yaw covariances) become the mapper's attitude block.
-    """
-    E = euler_rate_jacobian_ned(*quat_to_euler(q_wxyz))
-    return E @ np.asarray(cov_rpy, dtype=float) @ E.T
-
-
-def rotvec_covariance_to_euler(cov_rotvec: np.ndarray, q_wxyz: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`euler_covariance_to_rotvec` (for simulators that report roll/pitch/yaw covariance)."""
-    E_inv = np.linalg.inv(euler_rate_jacobian_ned(*quat_to_euler(q_wxyz)))
-    return E_inv @ np.asarray(cov_rotvec, dtype=float) @ E_inv.T
-
-
-def covariance_problem(P: np.ndarray, rel_tol: float = 1e-5) -> str | None:
-    """Why a symmetric covariance is unusable (non-finite, negative variance, not PSD), or None."""
-    if not np.all(np.isfinite(P)):
-        return "non-finite covariance"
-    d = np.diag(P)
-    if np.any(d < 0):
-        return "negative variance"
-    # Judge the correlation matrix D^-1/2 P D^-1/2, not P: a tolerance scaled by the largest variance would let
-    # a huge variance on one axis hide a correlation above 1 between two others.
-    P = 0.5 * (P + P.T)
-    s = np.sqrt(d)
-    known = s > 0
-    if np.any(P[~known] != 0.0):  # an axis with zero variance cannot covary with anything
-        return "covariance not positive semi-definite"
-    C = P[np.ix_(known, known)] / np.outer(s[known], s[known])
-    if C.size and float(np.linalg.eigvalsh(C).min()) < -rel_tol:
-        return "covariance not positive semi-definite"
-    return None
-
-
-def reported_covariance(values: Any, n: int) -> tuple[np.ndarray | None, str | None]:
-    """A MAVLink upper-triangle covariance -> (matrix, problem).
-
-    ``(None, None)`` when unknown (NaN first element, MAVLink's convention). A NaN variance marks
-    that state unknown (it stays NaN on the diagonal; :func:`covariance_block` then declines blocks
-    that contain it) and a NaN off-diagonal is an unknown correlation, read as 0: PX4's ODOMETRY
-    stream sets only the variances it has (position, orientation; vx, vy, vz but not the angular
-    rates) and leaves everything else NaN (PX4 src/modules/mavlink/streams/ODOMETRY.hpp). An infinite
-    element or a negative variance is a problem.
-    """
-    if values is None:
-        return None, None
-    values = np.asarray(values, dtype=float).reshape(-1)
-    if values.size == 0 or math.isnan(values[0]):
-        return None, None
-    try:
-        P = upper_triangle_to_matrix(values, n)
-    except ValueError:
-        return None, "covariance has the wrong length"
-    if np.any(np.isinf(P)):
-        return None, "non-finite covariance"
-    d = np.diag(P).copy()
-    if np.any(d < 0):
-        return None, "negative variance"
-    P[np.isnan(P)] = 0.0
-    P[np.diag_indices(n)] = d  # unknown variances stay NaN
-    return P, None
-
-
-def covariance_block(P: np.ndarray, states: slice) -> tuple[np.ndarray | None, str | None]:
-    """The sub-covariance over ``states`` of a :func:`reported_covariance` matrix.
-
-    ``(None, None)`` when one of its variances is unknown, ``(None, problem)`` when it is not PSD.
-    """
-    B = P[states, states]
-    if np.any(np.isnan(np.diag(B))):
-        return None, None
-    problem = covariance_problem(B)
-    return (None, problem) if problem else (B.copy(), None)
-
-
-def apply_floors(P: np.ndarray, floor_sigmas: np.ndarray) -> np.ndarray:
-    """Raise marginal standard deviations to at least ``floor_sigmas`` (n,) by adding a non-negative diagonal."""
-    add = np.maximum(0.0, np.asarray(floor_sigmas, dtype=float) ** 2 - np.diag(P))
-    return P + np.diag(add)
-
-
-def ratio_scale(ratio: float | None, ratio_good: float) -> float:
-    """Heuristic inflation ``max(1, ratio / ratio_good)`` of a sigma from an innovation test ratio."""
-    if ratio is None or not math.isfinite(ratio) or ratio <= 0.0:
-        return 1.0
-    return max(1.0, ratio / ratio_good)
 
 
 def geodetic_to_ned(lat_deg: float, lon_deg: float, alt_m: float, origin: "GeoOrigin") -> np.ndarray:
@@ -334,19 +184,6 @@ class _Attitude:
     omega_b: np.ndarray  # body rates (rad/s), FRD
 
 
-@dataclass(slots=True)
-class _Evidence:
-    """Covariance evidence from one message, validated and converted on arrival."""
-
-    t_rx: float
-    pos: np.ndarray | None = None  # (3, 3) m^2
-    vel: np.ndarray | None = None  # (3, 3) (m/s)^2, NED
-    att: np.ndarray | None = None  # (3, 3) rad^2, NED rotation vector
-    pos_vel: np.ndarray | None = None  # (3, 3) cross
-    pos_att: np.ndarray | None = None  # (3, 3) cross
-    values: dict[str, float] = field(default_factory=dict)  # ratios, accuracies, flags
-
-
 # --------------------------------------------------------------------------------------------
 # Message access
 # --------------------------------------------------------------------------------------------
@@ -409,7 +246,7 @@ class NavAssembler:
         """Forget everything received (autopilot reboot, new link). Counters are kept."""
         self._pos: _Position | None = None
         self._att: _Attitude | None = None
-        self._evidence: dict[str, _Evidence] = {}
+        self._evidence: dict[str, Evidence] = {}
         self._evidence_version = 0
         self._covariance_cache: tuple[tuple, np.ndarray, str] | None = None
         self._unix_minus_boot_s: float | None = None
@@ -440,7 +277,7 @@ class NavAssembler:
             math.radians(max(c.attitude_sigma_floor_deg, c.yaw_sigma_floor_deg)),  # heading: its own floor
         ]
 
-    def _set_evidence(self, kind: str, ev: _Evidence) -> None:
+    def _set_evidence(self, kind: str, ev: Evidence) -> None:
         self._evidence[kind] = ev
         self._evidence_version += 1
 
@@ -590,7 +427,7 @@ class NavAssembler:
             self.estimator_resets += 1
         self._odometry_reset_counter = reset_counter
 
-        ev = _Evidence(t_rx)
+        ev = Evidence(t_rx)
         pose, problem = reported_covariance(_get(msg, "pose_covariance"), 6)
         if problem:
             self._reject(kind, f"pose {problem}")
@@ -635,7 +472,7 @@ class NavAssembler:
             if problem is None and pos is not None and vel is not None:
                 _, problem = covariance_block(P, slice(0, 6))
             if problem is None and pos is not None and vel is not None:  # the model needs both blocks
-                self._set_evidence(kind, _Evidence(t_rx, pos=pos, vel=vel, pos_vel=P[:3, 3:6].copy()))
+                self._set_evidence(kind, Evidence(t_rx, pos=pos, vel=vel, pos_vel=P[:3, 3:6].copy()))
         if problem:
             self._reject(kind, problem)
         return None
@@ -656,12 +493,12 @@ class NavAssembler:
             self._reject(kind, problem)
             self._drop_evidence(kind)
             return None
-        self._set_evidence(kind, _Evidence(t_rx, att=euler_covariance_to_rotvec(0.5 * (P + P.T), q)))
+        self._set_evidence(kind, Evidence(t_rx, att=euler_covariance_to_rotvec(0.5 * (P + P.T), q)))
         return None
 
     def _on_estimator_status(self, msg: Any, t_rx: float) -> None:
         kind = "ESTIMATOR_STATUS"
-        ev = _Evidence(t_rx)
+        ev = Evidence(t_rx)
         h, vert = float(_get(msg, "pos_horiz_accuracy", math.nan)), float(_get(msg, "pos_vert_accuracy", math.nan))
         if math.isfinite(h) and math.isfinite(vert) and h > 0 and vert > 0:
             # PX4 reports eph = sqrt(P_nn + P_ee): split equally between north and east.
@@ -683,7 +520,7 @@ class NavAssembler:
             self._reject("EKF_STATUS_REPORT", "negative or non-finite test ratio", str(values))
             return None
         values["flags"] = float(_get(msg, "flags", 0))
-        self._set_evidence("EKF_STATUS_REPORT", _Evidence(t_rx, values=values))
+        self._set_evidence("EKF_STATUS_REPORT", Evidence(t_rx, values=values))
         return None
 
     def _on_gps_raw_int(self, msg: Any, t_rx: float) -> None:
@@ -697,7 +534,7 @@ class NavAssembler:
         if fix < GPS_FIX_TYPE_3D:
             self._drop_evidence("GPS_RAW_INT")
             return None
-        self._set_evidence("GPS_RAW_INT", _Evidence(t_rx, values=values))
+        self._set_evidence("GPS_RAW_INT", Evidence(t_rx, values=values))
         return None
 
     # --- context ---------------------------------------------------------------------------------
@@ -783,7 +620,7 @@ class NavAssembler:
         self._last_emitted_t = t
         return NavState(t, p, pos.v.copy(), q, P, source)
 
-    def _fresh(self, kind: str, now: float) -> _Evidence | None:
+    def _fresh(self, kind: str, now: float) -> Evidence | None:
         ev = self._evidence.get(kind)
         if ev is None or now - ev.t_rx > self.cfg.covariance_max_age_s:
             return None
@@ -806,90 +643,10 @@ class NavAssembler:
         return P, source
 
     def _compute_covariance(self, now: float) -> tuple[np.ndarray, str]:
-        odo = self._fresh("ODOMETRY", now)
-        lpc = self._fresh("LOCAL_POSITION_NED_COV", now)
-        aqc = self._fresh("ATTITUDE_QUATERNION_COV", now)
-        est = self._fresh("ESTIMATOR_STATUS", now)
-        ekf = self._fresh("EKF_STATUS_REPORT", now)
-        gps = self._fresh("GPS_RAW_INT", now)
-        floors = self.floor_sigmas
-        good = self.cfg.innovation_ratio_good
-        P = np.zeros((9, 9))
-        blocks: dict[str, str] = {}
-
-        # GPS accuracies (m, m/s) as the base of the heuristic models; floors when unknown.
-        gh = gv = gvel = 0.0
-        if gps is not None:
-            gh, gv, gvel = gps.values["h_acc_m"], gps.values["v_acc_m"], gps.values["vel_acc_mps"]
-        gps_tag = "+GPS_RAW_INT" if gps is not None and (gh > 0 or gv > 0 or gvel > 0) else ""
-        base_pos = np.array([max(floors[0], gh / math.sqrt(2)), max(floors[1], gh / math.sqrt(2)), max(floors[2], gv)])
-        base_vel = np.full(3, max(floors[3], gvel))
-
-        # Position (and the cross terms its source provides).
-        if odo is not None and odo.pos is not None:
-            P[0:3, 0:3] = odo.pos
-            blocks["position"] = "ODOMETRY"
-        elif lpc is not None:
-            P[0:3, 0:3] = lpc.pos
-            blocks["position"] = "LOCAL_POSITION_NED_COV"
-        elif est is not None and est.pos is not None:
-            P[0:3, 0:3] = est.pos
-            blocks["position"] = "ESTIMATOR_STATUS"
-        elif ekf is not None:
-            s = np.array([ratio_scale(ekf.values["pos_horiz_variance"], good)] * 2 + [ratio_scale(ekf.values["pos_vert_variance"], good)])
-            P[0:3, 0:3] = np.diag((base_pos * s) ** 2)
-            blocks["position"] = "EKF_STATUS_REPORT" + gps_tag + "+floors"
-        elif gps_tag:
-            P[0:3, 0:3] = np.diag(base_pos**2)
-            blocks["position"] = "GPS_RAW_INT+floors"
-        else:
-            blocks["position"] = "floors"
-
-        # Velocity.
-        if odo is not None and odo.vel is not None:
-            P[3:6, 3:6] = odo.vel
-            blocks["velocity"] = "ODOMETRY"
-        elif lpc is not None:
-            P[3:6, 3:6] = lpc.vel
-            if blocks["position"] == "LOCAL_POSITION_NED_COV":
-                P[0:3, 3:6] = lpc.pos_vel
-                P[3:6, 0:3] = lpc.pos_vel.T
-            blocks["velocity"] = "LOCAL_POSITION_NED_COV"
-        elif est is not None:
-            P[3:6, 3:6] = np.diag((base_vel * ratio_scale(est.values["vel_ratio"], good)) ** 2)
-            blocks["velocity"] = "ESTIMATOR_STATUS" + gps_tag + "+floors"
-        elif ekf is not None:
-            P[3:6, 3:6] = np.diag((base_vel * ratio_scale(ekf.values["velocity_variance"], good)) ** 2)
-            blocks["velocity"] = "EKF_STATUS_REPORT" + gps_tag + "+floors"
-        elif gps_tag:
-            P[3:6, 3:6] = np.diag(base_vel**2)
-            blocks["velocity"] = "GPS_RAW_INT+floors"
-        else:
-            blocks["velocity"] = "floors"
-
-        # Attitude (NED rotation vector: components 0, 1 are tilt, 2 is heading).
-        if odo is not None and odo.att is not None:
-            P[6:9, 6:9] = odo.att
-            if blocks["position"] == "ODOMETRY":
-                P[0:3, 6:9] = odo.pos_att
-                P[6:9, 0:3] = odo.pos_att.T
-            blocks["attitude"] = "ODOMETRY"
-        elif aqc is not None:
-            P[6:9, 6:9] = aqc.att
-            blocks["attitude"] = "ATTITUDE_QUATERNION_COV"
-        elif est is not None or ekf is not None:
-            # PX4 mag_ratio is one test ratio; ArduPilot's compass_variance is the length of a 3-vector
-            # of per-axis ratios (AP_NavEKF3 getVariances), so divide by sqrt(3) for a per-axis figure.
-            mag = est.values["mag_ratio"] if est is not None else ekf.values["compass_variance"] / math.sqrt(3)
-            sig = floors[6:9] * np.array([1.0, 1.0, ratio_scale(mag, good)])
-            P[6:9, 6:9] = np.diag(sig**2)
-            blocks["attitude"] = ("ESTIMATOR_STATUS" if est is not None else "EKF_STATUS_REPORT") + "+floors"
-        else:
-            blocks["attitude"] = "floors"
-
-        P = apply_floors(P, floors)
+        fresh = {kind: self._fresh(kind, now) for kind in EVIDENCE_KINDS}
+        P, blocks = covariance_from_evidence(fresh, self.floor_sigmas, self.cfg.innovation_ratio_good)
         self.last_covariance_blocks = blocks
-        return P, _source_string(blocks)
+        return P, source_string(blocks)
 
     # ------------------------------------------------------------------------------------------
     # Health
@@ -928,21 +685,6 @@ class NavAssembler:
         }
 
 
-def _source_string(blocks: dict[str, str]) -> str:
-    """Ordered union of the messages named by the blocks, with '+floors' last when any block uses floors."""
-    names: list[str] = []
-    floors = False
-    for source in blocks.values():
-        for part in source.split("+"):
-            if part == "floors":
-                floors = True
-            elif part not in names:
-                names.append(part)
-    if floors:
-        names.append("floors")
-    return "+".join(names)
-
-
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product a * b of (w, x, y, z) quaternions."""
     aw, ax, ay, az = a
@@ -972,16 +714,6 @@ __all__ = [
     "NavAssembler",
     "RejectionCounter",
     "TruthPose",
-    "apply_floors",
-    "covariance_block",
-    "covariance_problem",
-    "euler_covariance_to_rotvec",
-    "euler_rate_jacobian_ned",
     "geodetic_to_ned",
     "message_type",
-    "quat_to_euler",
-    "ratio_scale",
-    "reported_covariance",
-    "rotvec_covariance_to_euler",
-    "upper_triangle_to_matrix",
 ]
