@@ -19,7 +19,7 @@ import yaml
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from companion.config import CompanionConfig, replace
-from companion.desk.recordings import WorldFrame, camera_pose_to_opencv
+from companion.desk.recordings.recording import WorldFrame, camera_pose_to_opencv
 from companion.method.geometry import PinholeCamera, camera_from_config, euler_to_matrix, matrix_to_quat
 from companion.method.messages import Frame
 from drivers.clock import Clock

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 import replay_synthetic as rs
 from companion.config import CompanionConfig
-from companion.desk.recordings import (
+from companion.desk.recordings.recording import (
     IDENTITY_MOUNT,
     Overrides,
     PoseTable,

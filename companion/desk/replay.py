@@ -1,6 +1,6 @@
 """``companion replay DIR``: the mapper over a recording, as fast as possible (docs/replay.md).
 
-Reads any layout :mod:`companion.desk.recordings` knows (the service's own ``--record`` folder, a TUM
+Reads any layout :mod:`companion.desk.recordings.recording` knows (the service's own ``--record`` folder, a TUM
 folder, EuRoC MAV), runs the same pipeline as the daemon's mapper worker frame by frame
 (Harris detector -> :class:`Mapper` with the terrain map as depth prior -> :class:`TerrainGrid`),
 and writes to ``--output``:
@@ -32,7 +32,7 @@ from companion.config import CompanionConfig, ConfigError
 from companion.desk import plots
 from companion.desk.map_metrics import CellHeights, compare, bin_heights, dense_heights, map_cells, read_reference_csv
 from companion.desk.plots import height_map
-from companion.desk.recordings import (
+from companion.desk.recordings.recording import (
     Overrides,
     Recording,
     RecordingError,
@@ -120,7 +120,7 @@ class Reference:
 def load_reference(path: str | Path, recording: Recording, frame: str = "map", statistic: str = "mean") -> Reference:
     """Read a reference CSV. ``frame="map"``: columns are north, east, altitude up (m) in the map's
     local frame. ``frame="dataset"``: columns are x, y, z in the recording's own world frame (world
-    units), converted like its poses (:class:`companion.desk.recordings.WorldFrame`; for the service's
+    units), converted like its poses (:class:`companion.desk.recordings.recording.WorldFrame`; for the service's
     own recordings that frame is NED, z down)."""
     ref = read_reference_csv(path)
     xyz = ref.xyz
