@@ -15,21 +15,20 @@ from hypothesis import strategies as st
 
 import replay_synthetic as rs
 from companion.config import CompanionConfig
+from companion.desk.recordings.layouts import detect_kind, open_recording
+from companion.desk.recordings.poses import PoseTable
 from companion.desk.recordings.recording import (
     IDENTITY_MOUNT,
     Overrides,
-    PoseTable,
     RecordingError,
     WorldFrame,
     body_pose_from_camera,
     camera_pose_from_opencv,
     camera_pose_to_opencv,
-    detect_kind,
-    export_tum,
-    open_recording,
     pose_covariance,
     read_gray,
 )
+from companion.desk.recordings.tum import export_tum
 from companion.desk.replay import JPEG_BLACK_LEVEL, black_level_for, build_mapper, clamp_black
 from companion.method.geometry import CameraMount, PinholeCamera, euler_to_matrix
 from companion.method.terrain.grid import TerrainGrid

@@ -19,7 +19,9 @@ import replay_synthetic as rs
 from companion import cli
 from companion.config import CompanionConfig
 from companion.desk.map_metrics import bin_heights, compare, map_cells, read_reference_csv, reference_metrics
-from companion.desk.recordings.recording import WorldFrame, export_tum, open_recording, pose_covariance, recording_config
+from companion.desk.recordings.layouts import open_recording, recording_config
+from companion.desk.recordings.recording import WorldFrame, pose_covariance
+from companion.desk.recordings.tum import export_tum
 from companion.desk.replay import EXIT_NOTHING_MAPPED, build_mapper, load_reference, run_replay
 from companion.method.geometry import matrix_to_quat
 from companion.method.messages import NavState

@@ -1,6 +1,6 @@
 """``companion replay DIR``: the mapper over a recording, as fast as possible (docs/replay.md).
 
-Reads any layout :mod:`companion.desk.recordings.recording` knows (the service's own ``--record`` folder, a TUM
+Reads any layout :mod:`companion.desk.recordings` knows (the service's own ``--record`` folder, a TUM
 folder, EuRoC MAV), runs the same pipeline as the daemon's mapper worker frame by frame
 (Harris detector -> :class:`Mapper` with the terrain map as depth prior -> :class:`TerrainGrid`),
 and writes to ``--output``:
@@ -32,15 +32,9 @@ from companion.config import CompanionConfig, ConfigError
 from companion.desk import plots
 from companion.desk.map_metrics import CellHeights, compare, bin_heights, dense_heights, map_cells, read_reference_csv
 from companion.desk.plots import height_map
-from companion.desk.recordings.recording import (
-    Overrides,
-    Recording,
-    RecordingError,
-    export_tum,
-    open_recording,
-    reason_key,
-    recording_config,
-)
+from companion.desk.recordings.layouts import open_recording, recording_config
+from companion.desk.recordings.recording import Overrides, Recording, RecordingError, reason_key
+from companion.desk.recordings.tum import export_tum
 from companion.method.mapper import Mapper
 from companion.method.mapper.features import HarrisDetector
 from companion.method.terrain.grid import TerrainGrid

@@ -1,0 +1,207 @@
+"""The TUM folder layout, read (:func:`open_tum`) and written (:func:`export_tum`) (docs/replay.md):
+images with camera poses in TUM trajectory format (``timestamp tx ty tz qx qy qz qw``,
+camera-to-world, OpenCV camera axes) plus ``camera.yaml`` (intrinsics, OpenCV distortion, size) and
+``meta.yaml`` (the world's up axis, metric scale, pose uncertainty); ``pose_sigmas.txt`` gives
+per-frame uncertainty when present.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from companion.config import NavConfig
+from companion.desk.recordings.poses import PoseRecording, PoseTable, camera_from_mapping, dedupe_times, pose_arrays
+from companion.desk.recordings.recording import (
+    IDENTITY_MOUNT,
+    Overrides,
+    Recording,
+    RecordingError,
+    RecordingStats,
+    WorldFrame,
+    camera_pose_from_opencv,
+    camera_pose_to_opencv,
+    check_keys,
+    finite_float,
+    first_existing,
+    pose_covariance,
+    read_yaml,
+    sorted_frames,
+    table_rows,
+)
+from companion.method.geometry import CameraMount, matrix_to_quat, quat_to_matrix
+
+# TUM folder file names (the first that exists is used).
+TUM_IMAGES = ("images.txt", "rgb.txt")
+TUM_POSES = ("poses.txt", "groundtruth.txt")
+TUM_CAMERA = "camera.yaml"
+TUM_META = "meta.yaml"
+TUM_SIGMAS = "pose_sigmas.txt"
+
+TUM_META_KEYS = ("world_up", "world_north", "scale_m_per_unit", "pose_sigma_m", "pose_sigma_deg", "ground_alt_m",
+                 "association_s", "source")
+
+
+def _sigmas(text: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """``sp sa`` (isotropic) or ``spx spy spz sax say saz`` -> (3,) m, (3,) rad; attitude in degrees."""
+    values = [finite_float(v, "sigma") for v in text]
+    if any(v < 0 for v in values):
+        raise ValueError("sigmas must be >= 0")
+    if len(values) == 2:
+        return np.full(3, values[0]), np.full(3, math.radians(values[1]))
+    if len(values) == 6:
+        return np.asarray(values[:3]), np.radians(values[3:])
+    raise ValueError(f"{len(values)} sigma values (2 or 6 expected)")
+
+
+def _meta_float(meta: dict, key: str, default: float, lo: float, where: Path) -> float:
+    value = meta.get(key, default)
+    try:
+        value = float(value)
+    except (TypeError, ValueError) as exc:
+        raise RecordingError(f"{where}: '{key}' must be a number, got {value!r}") from exc
+    if not math.isfinite(value) or value < lo:
+        raise RecordingError(f"{where}: '{key}' = {value} must be finite and >= {lo}")
+    return value
+
+
+def open_tum(folder: Path, nav: NavConfig, overrides: Overrides = Overrides(), mount: CameraMount = IDENTITY_MOUNT) -> PoseRecording:
+    """A TUM-style folder: ``meta.yaml``, ``camera.yaml``, ``images.txt`` (or ``rgb.txt``),
+    ``poses.txt`` (or ``groundtruth.txt``) and optionally ``pose_sigmas.txt`` (docs/replay.md)."""
+    stats = RecordingStats()
+    meta_path = folder / TUM_META
+    if not meta_path.is_file():
+        raise RecordingError(f"{meta_path}: missing (it declares world_up and scale_m_per_unit; see docs/replay.md)")
+    meta = read_yaml(meta_path)
+    check_keys(meta, TUM_META_KEYS, meta_path)
+    if "world_up" not in meta or "scale_m_per_unit" not in meta:
+        raise RecordingError(f"{meta_path}: must declare 'world_up' (x, -x, y, -y, z or -z) and 'scale_m_per_unit'")
+    world = WorldFrame.from_up(meta["world_up"], meta.get("world_north"), _meta_float(meta, "scale_m_per_unit", 1.0, 1e-12, meta_path))
+    sigma_m = overrides.pose_sigma_m if overrides.pose_sigma_m is not None else _meta_float(meta, "pose_sigma_m", 0.02, 0.0, meta_path)
+    sigma_deg = overrides.pose_sigma_deg if overrides.pose_sigma_deg is not None else _meta_float(meta, "pose_sigma_deg", 0.2, 0.0, meta_path)
+    ground = overrides.ground_alt_m if overrides.ground_alt_m is not None else _meta_float(meta, "ground_alt_m", 0.0, -1e6, meta_path)
+    association_s = _meta_float(meta, "association_s", 0.02, 0.0, meta_path)
+    camera_path = folder / TUM_CAMERA
+    if not camera_path.is_file():
+        raise RecordingError(f"{camera_path}: missing (width, height, fx, fy, cx, cy, distortion)")
+    camera = camera_from_mapping(read_yaml(camera_path), camera_path)
+
+    images = first_existing(folder, TUM_IMAGES)
+    entries: list[tuple[int, Path, float, int]] = []
+    if images is not None:
+        for line_no, fields in table_rows(images, stats):
+            try:
+                if len(fields) < 2:
+                    raise ValueError(f"{len(fields)} fields, expected 'timestamp filename'")
+                entries.append((line_no, folder / fields[1], finite_float(fields[0], "timestamp"), len(entries)))
+            except ValueError as exc:
+                stats.bad_line(images, line_no, str(exc))
+        source = images
+    else:  # TUM RGB-D style: images/<timestamp>.png
+        source = folder / "images"
+        if not source.is_dir():
+            raise RecordingError(f"{folder}: neither {' nor '.join(TUM_IMAGES)} nor an images/ folder of <timestamp>.<ext> files")
+        for k, path in enumerate(sorted(p for p in source.iterdir() if p.is_file())):
+            try:
+                entries.append((k + 1, path, finite_float(path.stem, "timestamp"), k))
+            except ValueError:
+                stats.bad_line(source, k + 1, f"{path.name}: file name is not a timestamp")
+    frames = sorted_frames(entries, source, stats)
+
+    poses_path = first_existing(folder, TUM_POSES)
+    if poses_path is None:
+        raise RecordingError(f"{folder}: no pose file ({' or '.join(TUM_POSES)})")
+    t, p, R = [], [], []
+    for line_no, fields in table_rows(poses_path, stats):
+        try:
+            if len(fields) != 8:
+                raise ValueError(f"{len(fields)} fields, expected 'timestamp tx ty tz qx qy qz qw'")
+            values = [finite_float(v, "value") for v in fields]
+            q_xyzw = np.asarray(values[4:8])
+            norm = float(np.linalg.norm(q_xyzw))
+            if abs(norm - 1.0) > 1e-3:
+                raise ValueError(f"quaternion norm {norm:.6f} (unit quaternion expected)")
+            p_c, R_nc = camera_pose_from_opencv(np.asarray(values[1:4]), quat_to_matrix(np.r_[q_xyzw[3], q_xyzw[:3]]), world)
+        except ValueError as exc:
+            stats.bad_line(poses_path, line_no, str(exc))
+            continue
+        t.append(values[0])
+        p.append(p_c)
+        R.append(R_nc)
+    if not t:
+        raise RecordingError(f"{poses_path}: no usable pose")
+    tt, pp, qq = pose_arrays(t, p, R)
+    tt, pp, qq = dedupe_times(tt, pp, qq, source=poses_path, stats=stats)
+    covariance = pose_covariance(np.full(3, sigma_m), np.full(3, math.radians(sigma_deg)))
+    table = PoseTable(tt, pp, qq, covariance, mount, nav.buffer_max_gap_s, nav.buffer_extrapolate_s, "tum")
+
+    frame_cov: dict[float, np.ndarray] = {}
+    sigmas_path = folder / TUM_SIGMAS
+    if sigmas_path.is_file() and overrides.pose_sigma_m is None and overrides.pose_sigma_deg is None:
+        for line_no, fields in table_rows(sigmas_path, stats):
+            try:
+                ts = finite_float(fields[0], "timestamp")
+                sp, sa = _sigmas(fields[1:])
+            except (ValueError, IndexError) as exc:
+                stats.bad_line(sigmas_path, line_no, str(exc))
+                continue
+            frame_cov[ts] = pose_covariance(sp, sa, world.A)
+    return PoseRecording(folder, camera, mount, frames, stats, world=world, ground_alt_m=ground, poses=table,
+                         frame_covariances=frame_cov, association_s=association_s)
+
+
+# --------------------------------------------------------------------------------------------
+# Export to the TUM folder form
+# --------------------------------------------------------------------------------------------
+
+
+def export_tum(recording: Recording, out: str | Path, limit: int | None = None) -> dict[str, int]:
+    """Write ``recording`` as a TUM folder (docs/replay.md): the images copied byte for byte, the
+    camera poses (camera-to-world, OpenCV axes) in the NED world (``world_up: -z``, north x, scale
+    1), per-frame sigmas from the diagonal of each frame's pose covariance, ``camera.yaml`` and
+    ``meta.yaml``. Frames without navigation are left out (counted). Refuses a folder that already
+    holds poses. Returns counts."""
+    out = Path(out)
+    if (out / TUM_POSES[0]).exists() or (out / TUM_META).exists():
+        raise FileExistsError(f"{out} already holds a TUM export; choose a new folder")
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    world = WorldFrame()
+    counts = {"written": 0, "without_nav": 0, "missing_image": 0}
+    with open(out / TUM_IMAGES[0], "w") as f_img, open(out / TUM_POSES[0], "w") as f_pose, open(out / TUM_SIGMAS, "w") as f_sig:
+        f_img.write("# timestamp filename\n")
+        f_pose.write("# timestamp tx ty tz qx qy qz qw (camera-to-world, OpenCV camera axes, NED world)\n")
+        f_sig.write("# timestamp sigma_north_m sigma_east_m sigma_down_m sigma_rot_north_deg sigma_rot_east_deg sigma_rot_down_deg\n")
+        for s in recording.samples(load_images=False, limit=limit):
+            if s.nav is None:
+                counts["without_nav"] += 1
+                continue
+            if not s.image_path.is_file():
+                counts["missing_image"] += 1
+                continue
+            name = f"images/{counts['written']:06d}{s.image_path.suffix.lower()}"
+            shutil.copyfile(s.image_path, out / name)
+            p_c, R_nc = recording.mount.camera_pose(s.nav.position_ned_m, s.nav.R_nb)
+            t_w, R_w_cv = camera_pose_to_opencv(p_c, R_nc, world)
+            q = matrix_to_quat(R_w_cv)
+            t = repr(float(s.t_s))
+            f_img.write(f"{t} {name}\n")
+            f_pose.write(" ".join([t, *(repr(float(v)) for v in t_w), *(repr(float(v)) for v in (q[1], q[2], q[3], q[0]))]) + "\n")
+            sig = np.sqrt(np.clip(np.diag(s.nav.pose_covariance), 0.0, None))
+            f_sig.write(" ".join([t, *(repr(float(v)) for v in sig[:3]), *(repr(float(math.degrees(v))) for v in sig[3:])]) + "\n")
+            counts["written"] += 1
+    c = recording.camera
+    camera = {"width": c.width, "height": c.height, "fx": float(c.fx), "fy": float(c.fy), "cx": float(c.cx), "cy": float(c.cy),
+              "distortion": [float(d) for d in np.asarray(c.distortion).ravel()]}
+    (out / TUM_CAMERA).write_text(yaml.safe_dump(camera, sort_keys=False))
+    meta = {
+        "world_up": "-z", "world_north": "x", "scale_m_per_unit": 1.0,
+        "ground_alt_m": recording.ground_alt_m,
+        "pose_sigma_m": 0.02, "pose_sigma_deg": 0.2,
+        "source": {"kind": recording.kind, "path": str(recording.path)},
+    }  # fmt: skip
+    (out / TUM_META).write_text(yaml.safe_dump(meta, sort_keys=False))
+    return counts
