@@ -13,7 +13,7 @@ import sys
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("companion.desk.demo", "closed-loop demo: simulated vehicle + daemon + ground station, writes a report"),
+    "demo": ("companion.desk.demo.command", "closed-loop demo: simulated vehicle + daemon + ground station, writes a report"),
     "run": ("companion.service.daemon", "run the service (the systemd unit runs this)"),
     "sim": ("drivers.sim.vehicle", "simulated multirotor that speaks MAVLink (ArduPilot or PX4 flavour)"),
     "quality": ("companion.desk.quality.suite", "the scenario suite: what a pilot sees, over scenarios x seeds x mappers"),

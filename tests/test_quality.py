@@ -269,7 +269,7 @@ def test_demo_service_configuration_layers_in_order(tmp_path):
     """defaults < the demo's own settings < the scenario's service section < --config < --set."""
     import argparse
 
-    from companion.desk import demo
+    from companion.desk.demo import command as demo
     from companion.config import config_from_dict
     from companion.desk.quality.scenarios import override_layers, world_for
 
