@@ -280,7 +280,7 @@ def test_bad_options_exit_2_naming_the_problem(argv, message, capsys, tmp_path):
 
 
 def test_progress_is_plain_lines_when_stderr_is_not_a_terminal(tmp_path):
-    from companion.desk.demo.command import Progress, progress_line
+    from companion.desk.demo.progress import Progress, progress_line
 
     with open(tmp_path / "err.txt", "w") as f:
         p = Progress(f, every_s=0.0)

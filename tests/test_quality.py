@@ -269,20 +269,21 @@ def test_demo_service_configuration_layers_in_order(tmp_path):
     """defaults < the demo's own settings < the scenario's service section < --config < --set."""
     import argparse
 
-    from companion.desk.demo import command as demo
     from companion.config import config_from_dict
+    from companion.desk.demo.command import configure_parser
+    from companion.desk.demo.flight import daemon_config
     from companion.desk.quality.scenarios import override_layers, world_for
 
     cfg_file = tmp_path / "service.yaml"
     cfg_file.write_text("camera: {mount_pitch_deg: -28.0}\nmapper: {max_features: 70}\n")
     p = argparse.ArgumentParser()
-    demo.configure_parser(p)
+    configure_parser(p)
     a = p.parse_args(["--scenario", "treeline_tall", "--config", str(cfg_file), "--set", "mapper.max_features=90",
                       "--set", "avoidance.clearance_m=11"])
     a.overrides = override_layers(a.config, a.set)
     world = World.load("treeline_tall")
     world = world_for(world, flight_config(world, a.scenario, "inverse_depth", a.seed, a.camera_rate, a.overrides))
-    cfg = config_from_dict(demo.daemon_config(world, a, "inverse_depth", 5760, 7447, tmp_path / "map"))
+    cfg = config_from_dict(daemon_config(world, a, "inverse_depth", 5760, 7447, tmp_path / "map"))
     assert cfg.camera.mount_pitch_deg == -28.0            # --config over the scenario's -35
     assert cfg.mapper.max_features == 90                  # --set over --config
     assert cfg.avoidance.clearance_m == 11.0 and world.clearance_m == 11.0  # the demo's figures use it too
