@@ -1,4 +1,4 @@
-"""Reading recordings for replay (companion/desk/recordings.py): frame conventions, the three layouts,
+"""Reading recordings for replay (companion/desk/recordings/): frame conventions, the three layouts,
 damage counting, export to the TUM form, and black borders in the images they deliver."""
 
 from __future__ import annotations
