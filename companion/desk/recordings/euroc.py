@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import NavConfig
-from companion.desk.recordings.poses import PoseRecording, PoseTable, camera_from_mapping, dedupe_times, pose_arrays
+from companion.desk.recordings.poses import PoseRecording, PoseTable, camera_from_mapping, sorted_poses
 from companion.desk.recordings.recording import (
     IDENTITY_MOUNT,
     Overrides,
@@ -117,10 +117,7 @@ def open_euroc(path: Path, nav: NavConfig, overrides: Overrides = Overrides(), m
         t.append((ns - ns0) * 1e-9)
         p.append(p_c)
         R.append(R_nc)
-    if not t:
-        raise RecordingError(f"{gt_path}: no usable pose")
-    tt, pp, qq = pose_arrays(t, p, R)
-    tt, pp, qq = dedupe_times(tt, pp, qq, source=gt_path, stats=stats)
+    tt, pp, qq = sorted_poses(t, p, R, gt_path, stats)
     sigma_m = overrides.pose_sigma_m if overrides.pose_sigma_m is not None else 0.02
     sigma_deg = overrides.pose_sigma_deg if overrides.pose_sigma_deg is not None else 0.2
     covariance = pose_covariance(np.full(3, sigma_m), np.full(3, math.radians(sigma_deg)))

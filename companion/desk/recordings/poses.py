@@ -100,14 +100,14 @@ class PoseRecording(Recording):
         return self._cov[best] if abs(best - t_s) <= self.association_s else None
 
 
-def pose_arrays(t: list[float], p_c: list[np.ndarray], R_nc: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _pose_arrays(t: list[float], p_c: list[np.ndarray], R_nc: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not t:
         return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))
     order = np.argsort(np.asarray(t), kind="stable")
     return np.asarray(t)[order], np.asarray(p_c)[order], matrix_to_quat(np.asarray(R_nc)[order])
 
 
-def dedupe_times(t: np.ndarray, *arrays: np.ndarray, source: Path, stats: RecordingStats):
+def _dedupe_times(t: np.ndarray, *arrays: np.ndarray, source: Path, stats: RecordingStats):
     """Drop poses whose time repeats the previous one (counted)."""
     if len(t) < 2:
         return (t, *arrays)
@@ -117,6 +117,16 @@ def dedupe_times(t: np.ndarray, *arrays: np.ndarray, source: Path, stats: Record
     if not keep.all():
         stats.note(f"{source}: {int((~keep).sum())} poses repeat an earlier time; skipped")
     return (t[keep], *(a[keep] for a in arrays))
+
+
+def sorted_poses(t: list[float], p_c: list[np.ndarray], R_nc: list[np.ndarray], source: Path,
+                 stats: RecordingStats) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The poses read from ``source`` as arrays in time order: t (N,), p_c (N, 3), q_nc (N, 4) wxyz; a
+    pose that repeats the previous one's time is dropped and counted. RecordingError when none was usable."""
+    if not t:
+        raise RecordingError(f"{source}: no usable pose")
+    tt, pp, qq = _pose_arrays(t, p_c, R_nc)
+    return _dedupe_times(tt, pp, qq, source=source, stats=stats)
 
 
 def camera_from_mapping(data: dict[str, Any], where: Path) -> PinholeCamera:

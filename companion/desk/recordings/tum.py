@@ -15,7 +15,7 @@ import numpy as np
 import yaml
 
 from companion.config import NavConfig
-from companion.desk.recordings.poses import PoseRecording, PoseTable, camera_from_mapping, dedupe_times, pose_arrays
+from companion.desk.recordings.poses import PoseRecording, PoseTable, camera_from_mapping, sorted_poses
 from companion.desk.recordings.recording import (
     IDENTITY_MOUNT,
     Overrides,
@@ -132,10 +132,7 @@ def open_tum(folder: Path, nav: NavConfig, overrides: Overrides = Overrides(), m
         t.append(values[0])
         p.append(p_c)
         R.append(R_nc)
-    if not t:
-        raise RecordingError(f"{poses_path}: no usable pose")
-    tt, pp, qq = pose_arrays(t, p, R)
-    tt, pp, qq = dedupe_times(tt, pp, qq, source=poses_path, stats=stats)
+    tt, pp, qq = sorted_poses(t, p, R, poses_path, stats)
     covariance = pose_covariance(np.full(3, sigma_m), np.full(3, math.radians(sigma_deg)))
     table = PoseTable(tt, pp, qq, covariance, mount, nav.buffer_max_gap_s, nav.buffer_extrapolate_s, "tum")
 
