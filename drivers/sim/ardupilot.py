@@ -69,17 +69,7 @@ class ArduPilotCopter(SimAutopilot):
     AUTOPILOT = mav.MAV_AUTOPILOT_ARDUPILOTMEGA
     EXTERNAL_CAN_TAKE_OFF = False
     STREAMABLE = {
-        mav.MAVLINK_MSG_ID_HEARTBEAT: "msg_heartbeat",
-        mav.MAVLINK_MSG_ID_SYS_STATUS: "msg_sys_status",
-        mav.MAVLINK_MSG_ID_SYSTEM_TIME: "msg_system_time",
-        mav.MAVLINK_MSG_ID_GPS_RAW_INT: "msg_gps_raw_int",
-        mav.MAVLINK_MSG_ID_ATTITUDE: "msg_attitude",
-        mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: "msg_attitude_quaternion",
-        mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: "msg_local_position_ned",
-        mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: "msg_global_position_int",
-        mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: "msg_gps_global_origin",
-        mav.MAVLINK_MSG_ID_VFR_HUD: "msg_vfr_hud",
-        mav.MAVLINK_MSG_ID_SIM_STATE: "msg_sim_state",
+        **SimAutopilot.COMMON_STREAMABLE,
         mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: "msg_autopilot_version",
         mav.MAVLINK_MSG_ID_SIMSTATE: "msg_simstate",
         mav.MAVLINK_MSG_ID_EKF_STATUS_REPORT: "msg_ekf_status_report",

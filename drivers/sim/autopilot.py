@@ -137,6 +137,20 @@ class SimAutopilot:
     VEHICLE_TYPE = mav.MAV_TYPE_QUADROTOR
     #: message ids a client may stream or request, mapped to the builder method name
     STREAMABLE: dict[int, str] = {}
+    # What both flavours stream (each flavour's STREAMABLE starts from it): message id -> builder.
+    COMMON_STREAMABLE: dict[int, str] = {
+        mav.MAVLINK_MSG_ID_HEARTBEAT: "msg_heartbeat",
+        mav.MAVLINK_MSG_ID_SYS_STATUS: "msg_sys_status",
+        mav.MAVLINK_MSG_ID_SYSTEM_TIME: "msg_system_time",
+        mav.MAVLINK_MSG_ID_GPS_RAW_INT: "msg_gps_raw_int",
+        mav.MAVLINK_MSG_ID_ATTITUDE: "msg_attitude",
+        mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: "msg_attitude_quaternion",
+        mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: "msg_local_position_ned",
+        mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: "msg_global_position_int",
+        mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: "msg_gps_global_origin",
+        mav.MAVLINK_MSG_ID_VFR_HUD: "msg_vfr_hud",
+        mav.MAVLINK_MSG_ID_SIM_STATE: "msg_sim_state",
+    }
     #: message ids this autopilot refuses to stream
     DENIED: frozenset[int] = frozenset()
     #: setpoints in EXTERNAL may lift the vehicle off the ground (PX4 offboard yes, ArduPilot no)

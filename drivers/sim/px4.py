@@ -74,17 +74,7 @@ class PX4Multicopter(SimAutopilot):
     AUTOPILOT = mav.MAV_AUTOPILOT_PX4
     EXTERNAL_CAN_TAKE_OFF = True
     STREAMABLE = {
-        mav.MAVLINK_MSG_ID_HEARTBEAT: "msg_heartbeat",
-        mav.MAVLINK_MSG_ID_SYS_STATUS: "msg_sys_status",
-        mav.MAVLINK_MSG_ID_SYSTEM_TIME: "msg_system_time",
-        mav.MAVLINK_MSG_ID_GPS_RAW_INT: "msg_gps_raw_int",
-        mav.MAVLINK_MSG_ID_ATTITUDE: "msg_attitude",
-        mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: "msg_attitude_quaternion",
-        mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: "msg_local_position_ned",
-        mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: "msg_global_position_int",
-        mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: "msg_gps_global_origin",
-        mav.MAVLINK_MSG_ID_VFR_HUD: "msg_vfr_hud",
-        mav.MAVLINK_MSG_ID_SIM_STATE: "msg_sim_state",
+        **SimAutopilot.COMMON_STREAMABLE,
         mav.MAVLINK_MSG_ID_HIL_STATE_QUATERNION: "msg_hil_state_quaternion",
         mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: "msg_autopilot_version",
         mav.MAVLINK_MSG_ID_HOME_POSITION: "msg_home_position",
