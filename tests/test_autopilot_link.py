@@ -289,6 +289,26 @@ async def running(link):
     assert link.state == "stopped"
 
 
+@contextlib.asynccontextmanager
+async def connected(flavour: str = "ardupilot", transport: str = "udp", **settings):
+    """A simulated autopilot peer serving on loopback (UDP or TCP) and a link connected to it:
+    yields ``(peer, link)``; the link is stopped and the peer closed afterwards."""
+    clock = Clock()
+    peer = Peer(clock, flavour)
+    if transport == "udp":
+        address = f"udpout:127.0.0.1:{await peer.serve_udp()}"
+    else:
+        address = f"tcp:127.0.0.1:{await peer.serve_tcp()}"
+    peer.start()
+    link = AutopilotLink(make_cfg(address, **settings), clock)
+    try:
+        async with running(link):
+            assert await link.wait_connected(3.0)
+            yield peer, link
+    finally:
+        await peer.stop()
+
+
 async def cancel_and_wait(task):
     """Cancel a task and wait for it, without swallowing a cancellation of the caller itself."""
     task.cancel()
@@ -511,20 +531,13 @@ def test_tcp_peer_goes_away_link_lost_then_reconnects_and_rerequests_streams():
 
 def test_udp_heartbeat_silence_is_link_lost_and_resumption_reconnects():
     async def main():
-        clock = Clock()
-        peer = Peer(clock, "ardupilot")
-        port = await peer.serve_udp()
-        peer.start()
-        link = AutopilotLink(make_cfg(f"udpout:127.0.0.1:{port}"), clock)
-        async with running(link):
-            assert await link.wait_connected(3.0)
+        async with connected("ardupilot", "udp") as (peer, link):
             peer.heartbeats_on = False
             await until(lambda: link.state == "lost", timeout=2.0, what="heartbeat timeout")
             assert "heartbeat timeout" in link.status()["link"]["last_error"]
             peer.heartbeats_on = True
             assert await link.wait_connected(2.0)
             assert link.reconnects == 1 and link.link_losses == 1
-        await peer.stop()
 
     run(main())
 
@@ -634,33 +647,20 @@ def test_autopilot_reboot_is_detected_and_time_relearnt():
 
 def test_sim_state_truth_pose_in_the_ekf_frame():
     async def main():
-        clock = Clock()
-        peer = Peer(clock, "ardupilot")
-        port = await peer.serve_udp()
-        peer.start()
-        link = AutopilotLink(make_cfg(f"udpout:127.0.0.1:{port}", **{"link.request_sim_state": True}), clock)
-        async with running(link):
-            assert await link.wait_connected(3.0)
+        async with connected("ardupilot", "udp", **{"link.request_sim_state": True}) as (peer, link):
             await until(lambda: link.truth_pose() is not None, what="truth")
             truth = link.truth_pose()
             expected = SPEED * truth.t_s + [0, 0, -10]
             assert np.abs(truth.position_ned_m - expected).max() < 0.05  # arrival-stamped, degE7-quantised
             assert truth.origin_source == "GPS_GLOBAL_ORIGIN"
             assert link.status()["streams"]["SIM_STATE"]["result"] == "ACCEPTED"
-        await peer.stop()
 
     run(main())
 
 
 def test_long_statustext_goes_out_in_chunks():
     async def main():
-        clock = Clock()
-        peer = Peer(clock, "ardupilot")
-        port = await peer.serve_udp()
-        peer.start()
-        link = AutopilotLink(make_cfg(f"udpout:127.0.0.1:{port}"), clock)
-        async with running(link):
-            assert await link.wait_connected(3.0)
+        async with connected("ardupilot", "udp") as (peer, link):
             text = "companion: terrain avoidance engaged, climbing at 2.5 m/s over a 12 m structure ahead"
             assert link.send_statustext("WARNING", text) == 2
             assert link.send_statustext(6, "camera back") == 1
@@ -671,7 +671,6 @@ def test_long_statustext_goes_out_in_chunks():
             assert chunks[0].severity == mavlink2.MAV_SEVERITY_WARNING
             with pytest.raises(ValueError, match="severity"):
                 link.send_statustext("LOUD", "x")
-        await peer.stop()
 
     run(main())
 
