@@ -19,7 +19,7 @@ from companion.method.avoidance import PullUpLaw
 from companion.method.messages import TerrainPoints
 from companion.method.terrain.grid import TerrainGrid
 
-BYTES_PER_CELL = 20  # height f32, variance f32, count u32, disagreement f32, pending f32 (companion.method.terrain.grid)
+BYTES_PER_CELL = 32  # height f32, variance f32, count u32, disagreement f32, pending f32, ceiling f32, weight f32, floor f32 (companion.method.terrain.grid)
 
 
 def converged_points(flight: Flight, n_points: int = 1000, n_features: int = 300) -> TerrainPoints:

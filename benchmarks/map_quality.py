@@ -306,8 +306,8 @@ def fly(spec: RunSpec) -> RunResult:
             step = mapper.step(nav_f, image)
             frames += 1
             _track(world, camera, mount, p_c, R_nc, detector.uv_raw, step, mapper, nav_f, tracks, log, t)
+            stats = grid.add_evidence(step.points, step.free_space, step.floors)
             if len(step.points):
-                stats = grid.insert(step.points)
                 inserted += stats.inserted
                 rejected += stats.rejected_outlier
                 k = len(step.points)

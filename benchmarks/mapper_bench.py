@@ -102,8 +102,8 @@ def run_interleaved(flight: Flight, variants: dict, repeats: int = 1, warmup_fra
         with ctx:
             c0, t0 = time.thread_time(), time.perf_counter()
             s = mapper.step(flight.navs[k], flight.images[k])
-            if grid is not None and len(s.points):
-                grid.insert(s.points)
+            if grid is not None:
+                grid.add_evidence(s.points, s.free_space, s.floors)
             dt, dc = time.perf_counter() - t0, time.thread_time() - c0
         return s, dt, dc
 

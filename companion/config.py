@@ -144,11 +144,15 @@ class MapperConfig:
     init_index_max: float = _f(20.0, "", 0.0, 10000.0, "initialisation index when nothing matched")
     init_exclusion_chi2: float = _f(23.0, "", 0.1, 1000.0, "an unmatched measurement this close (Mahalanobis) to a stored feature is not initialised (23 = 1e-5 tail)")
     converge_min_updates: int = _f(3, "", 1, 10000, "EKF updates a feature needs before it may count as converged")
-    converged_max_depth_sigma_m: float = _f(0.5, "m", 1e-3, 1e4, "converged also needs the depth sigma (m) below this: a far feature at 10 % is metres off")
+    converged_max_depth_sigma_m: float = _f(1.2, "m", 1e-3, 1e4, "converged also needs the depth sigma (m) below this: a far feature at 10 % is metres off")
+    floor_max_depth_sigma_m: float = _f(2.0, "m", 0.0, 1e4, "a feature not yet converged whose depth sigma is below this bounds the terrain in its cell from below, every frame, until it converges: the warning a far surface gives before its point is precise (docs/mapper.md); 0 = none")
+    floor_sigma: float = _f(2.0, "sigma", 0.0, 10.0, "that lower bound is the lower of the estimate and its point this many sigma farther along the line of sight")
     appearance_patch_px: int = _f(9, "px", 0, 31, "edge of the grey-level patch compared between a feature and a measurement; 0 = Mahalanobis matching only (the paper)")
     appearance_min_ncc: float = _f(0.7, "", -1.0, 1.0, "a pair is only matched if the patches' normalised cross-correlation reaches this")
     prior_min_range_m: float = _f(1.0, "m", 0.01, 1e4, "depth prior ranges are clipped to at least this")
     prior_max_range_m: float = _f(200.0, "m", 1.0, 1e6, "range given to rays that miss the ground (rho = 1/this)")
+    retire_converged: bool = _f(True, "", None, None, "a converged feature (its point is in the map) is the first to give its slot to a new measurement, so the database keeps room for the terrain ahead; false = the paper's rule alone")
+    free_space_sigma: float = _f(3.0, "sigma", 0.0, 10.0, "free space for the map's carving: each updated feature's line of sight up to the nearest it can be at this many sigma (inverse depth: rho + k sigma_rho); 0 = none")
     nav_attitude_correlation_s: float = _f(10.0, "s", 0.0, 1e6, "features live in the autopilot's estimated frame, which drifts between frames: "
                                            "attitude as a Gauss-Markov error with this correlation time, (1 - exp(-2 dt / this)) P_att; 0 = the paper's independent P_x every frame")
 
@@ -170,6 +174,10 @@ class TerrainConfig:
     reset_evidence: float = _f(20.0, "points", 0.1, 1e6, "points below a cell, with none agreeing in between, that bring it down to them (a wall's face sends many: keep it well above a few)")
     process_noise_m2: float = _f(1e-4, "m^2", 0.0, 100.0, "added to a cell's variance before each update, so the map can forget")
     max_abs_coordinate_m: float = _f(1e6, "m", 1.0, 1e8, "points further from the local origin are rejected as invalid")
+    carve_start_m: float = _f(2.0, "m", 0.0, 1000.0, "free-space carving starts this far (horizontally) from the camera: a line of sight near the camera's own height bounds nothing a vehicle could fly over")
+    carve_end_margin_m: float = _f(1.5, "m", 0.0, 100.0, "free-space carving stops this far (horizontally) short of the end of each line of sight, so a feature's own cell and a wall's face are never carved")
+    carve_margin_m: float = _f(0.5, "m", 0.0, 100.0, "a line of sight passing this far (plus gate_sigma sigma) below a cell's height contradicts it")
+    carve_rays: float = _f(3.0, "rays", 0.5, 1000.0, "frames whose lines of sight pass under a cell's height, with no point agreeing in between, that clear the cell (a phantom does not survive the next look)")
 
 
 @dataclass(frozen=True, slots=True)
@@ -178,6 +186,7 @@ class AvoidanceConfig:
 
     clearance_m: float = _f(15.0, "m", 0.0, 1000.0, "h_c")
     accel_mps2: float = _f(1.0, "m/s^2", 0.01, 50.0, "a_c, vertical acceleration the law may ask for")
+    command_climb_accel_mps2: float = _f(2.5, "m/s^2", 0.0, 100.0, "the climb-rate setpoint rises by at most this per second (it falls by at most accel_mps2): a step in the setpoint pitches a multirotor, and a pitching camera loses its features (docs/avoidance.md, \"A smooth command\"); 0 = unlimited")
     miss_distance_m: float = _f(5.0, "m", 0.0, 1000.0, "horizontal miss distance (corridor half-width)")
     lookahead_m: float = _f(100.0, "m", 1.0, 10000.0)
     max_climb_mps: float = _f(3.0, "m/s", 0.0, 50.0)
@@ -188,6 +197,10 @@ class AvoidanceConfig:
     descend_known_fraction: float = _f(0.03, "", 0.0, 1.0, "descend only when at least this fraction of the cells below the vehicle is mapped: those it flew over within the miss distance behind and either side (within the miss distance around at hover); never push over into unseen terrain, e.g. a plain roof, but one mapped cell in thirty is enough over sparsely mapped ground")
     unknown_fill_m: float = _f(5.0, "m", 0.0, 1000.0, "an unmapped cell is taken as high as the highest mapped cell within this along-track distance in the corridor")
     height_margin_sigma: float = _f(2.0, "sigma", 0.0, 10.0, "a mapped cell counts as h + k sqrt(variance): the clearance is kept above the map's uncertainty too (0 = the estimate alone)")
+    speed_limit: bool = _f(True, doc="slow down for mapped terrain the law cannot climb over in time at the commanded speed: never faster than lets the vehicle make the climb, or stop, before it (docs/avoidance.md, \"Slowing for a late obstacle\"); false = the route's speed whatever the map holds")
+    speed_limit_shortfall: float = _f(0.1, "", 0.0, 1.0, "the speed limit leaves shortfalls below this fraction of the clearance to the law (it makes them up as it flies); a larger one it must be able to climb, or brake, for")
+    brake_accel_mps2: float = _f(2.0, "m/s^2", 0.05, 50.0, "horizontal deceleration the speed limit counts on (below what the vehicle can do)")
+    reaction_time_s: float = _f(0.5, "s", 0.0, 10.0, "time before braking starts: the control period, the map's latency and the autopilot's response")
     enabled: bool = _f(True, doc="false = command the nominal altitude only; the law is still evaluated and published (demo --no-avoid)")
 
 

@@ -362,3 +362,58 @@ def test_margin_is_the_same_law_on_a_map_raised_by_k_sigma(k, sigma, alt, north)
     b = PullUpLaw(CFG).command([north, 0.5, -alt], [5, 0, 0], raised)
     assert a.climb_rate_mps == pytest.approx(b.climb_rate_mps, abs=1e-5)  # the map stores float32
     assert a.engaged == b.engaged
+
+
+@settings(max_examples=60, deadline=None)
+@given(gain=st.floats(0.1, 40.0), w0=st.floats(-2.0, 3.0), a=st.floats(0.3, 3.0), cap=st.floats(0.5, 5.0))
+def test_climb_time_is_the_fastest_level_to_level_climb(gain, w0, a, cap):
+    """climb_time(H, w0) against the profile flown in small steps: from w0 (stopping a descent
+    first) accelerate at +a up to the cap while the altitude still needed exceeds the braking
+    distance w^2 / (2a), else brake at -a. Flown for climb_time seconds it has gained H (ending
+    level there, or passing it when already climbing too fast to stop below it); flown for 90 % of
+    that time it has not."""
+    from companion.method.avoidance import climb_time
+    t = float(climb_time(np.array([gain]), w0, a, cap)[0])
+
+    def flown(duration):
+        w, h, dt = min(w0, cap), 0.0, 1e-4
+        for _ in range(int(round(duration / dt))):
+            accelerate = w <= 0 or gain - h > w * w / (2 * a)
+            w_new = min(w + a * dt, cap) if accelerate else w - a * dt
+            h += 0.5 * (w + w_new) * dt
+            w = w_new
+        return h
+
+    assert flown(t) == pytest.approx(gain, abs=2e-3 * (1.0 + gain))
+    assert flown(0.9 * t) < gain
+
+
+def test_brake_speed_stops_within_the_distance():
+    from companion.method.avoidance import brake_speed
+    for d in (0.0, 1.0, 9.3, 40.0):
+        v = float(brake_speed(np.array([d]), 2.0, 0.5)[0])
+        assert v * 0.5 + v * v / (2 * 2.0) == pytest.approx(d)
+
+
+def test_a_late_obstacle_slows_the_vehicle_until_the_climb_fits():
+    """A 12 m wall mapped 12 m ahead of a level vehicle at the nominal altitude (clearance 10 m):
+    the climb takes climb_time(12 - ...) s, too long at 6 m/s, so the limit is the speed from which
+    the vehicle still stops before the zone. Climbed to within the shortfall, no limit is left;
+    flat ground and the option off give none."""
+    from companion.method.avoidance import brake_speed, climb_time
+    cfg = AvoidanceConfig(**{**{f: getattr(CFG, f) for f in CFG.__dataclass_fields__}, "speed_limit": True,
+                             "speed_limit_shortfall": 0.1, "brake_accel_mps2": 2.0, "reaction_time_s": 0.5})
+    grid = mapped([[n + 0.5, e + 0.5, 12.0] for n in range(12, 15) for e in range(-3, 3)])
+    cmd = PullUpLaw(cfg).command([0.0, 0.5, -10.0], [6.0, 0.0, 0.0], grid)
+    radius = cfg.miss_distance_m + math.sqrt(0.5)
+    entry = 12.5 - radius  # the nearest cell centre on the track line
+    gain = 12.0 + 0.9 * cfg.clearance_m - 10.0
+    by_climb = entry / float(climb_time(np.array([gain]), 0.0, cfg.accel_mps2, cfg.max_climb_mps)[0])
+    by_brake = float(brake_speed(np.array([entry]), 2.0, 0.5)[0])
+    assert cmd.speed_limit_mps == pytest.approx(max(by_climb, by_brake), rel=1e-6)
+    assert cmd.speed_limit_mps < 6.0
+    above = PullUpLaw(cfg).command([0.0, 0.5, -(12.0 + 0.9 * cfg.clearance_m + 0.01)], [6.0, 0.0, 0.0], grid)
+    assert above.speed_limit_mps == math.inf
+    assert PullUpLaw(cfg).command([0.0, 0.5, -10.0], [6.0, 0.0, 0.0], mapped([])).speed_limit_mps == math.inf
+    off = AvoidanceConfig(**{**{f: getattr(cfg, f) for f in cfg.__dataclass_fields__}, "speed_limit": False})
+    assert PullUpLaw(off).command([0.0, 0.5, -10.0], [6.0, 0.0, 0.0], grid).speed_limit_mps == math.inf

@@ -51,7 +51,10 @@ def test_perfect_navigation_maps_flat_ground_to_centimetres_and_the_building_to_
     f = map_figures(r.grid, r.world)
     c = classify_points(r.points)
     assert f["cells"] > 300
-    assert f["rmse_flat"] < 0.15 and abs(f["bias_flat"]) < 0.05
+    # A point converges once its depth sigma is below mapper.converged_max_depth_sigma_m (1.2 m, a
+    # trade measured in the scenario suite: docs/mapper.md), so flat cells are fused from points of
+    # up to ~0.8 m height sigma: RMSE 0.18 m with perfect navigation (0.5 m gave under 0.15 m).
+    assert f["rmse_flat"] < 0.25 and abs(f["bias_flat"]) < 0.05
     assert f["spurious"] < 0.01 and f["max_high_flat"] < 1.0
     assert c["bad"] < 0.01  # emitted points more than 1 m off in height
     # One pass puts the building at 6-9 m of its 9 m of texture (measured 6.3-8.8 m over seeds and
@@ -72,7 +75,9 @@ def test_default_navigation_error_leaves_no_phantom_obstacle(flights):
     assert mapping["spurious"] < 0.02 and mapping["rmse"] < 1.0
     assert f["rmse_flat"] < 1.0
     assert f["spurious_flat"] < 0.02 and f["max_high_flat"] < 3.0  # before: 6-10 m spikes on flat ground
-    assert c["mismatch"] < 0.02
+    # Points converge at a depth sigma of 1.2 m (docs/mapper.md): a few more mismatched features
+    # get there than at 0.5 m (measured 3.2 % of the points against under 2 %).
+    assert c["mismatch"] < 0.05
     assert f["building_max"] >= 0.65 * TEXTURED_M
     assert r.max_alt_m < 28.0  # before: climbed to ~50 m
 
@@ -161,8 +166,8 @@ def _fly_feature_level(cfg: MapperConfig, nav_offset, frames=90, sigma_att_deg=2
 
 def test_a_constant_navigation_error_costs_decimetres_not_the_map():
     """P_x says 2 deg of yaw (a GPS/INS heading) and the error is constant. The paper's model treats it
-    as new noise every frame: search regions of ~20 px, depth never below the emission limit,
-    nothing emitted. In the estimate's frame the features converge as without the error; what is
+    as new noise every frame: search regions of ~20 px, depth hardly ever below the emission limit,
+    next to nothing emitted (19 points against 379). In the estimate's frame the features converge as without the error; what is
     left is the bias a tilt error puts on triangulation (0.4 deg of pitch: ~1 % of depth)."""
     offset = ([0.4, -0.3, 0.6], np.radians([0.3, -0.4, 2.0]))
     slow = dataclasses.replace(MapperConfig(), nav_attitude_correlation_s=100.0)
@@ -170,18 +175,22 @@ def test_a_constant_navigation_error_costs_decimetres_not_the_map():
     est, ref = _fly_feature_level(slow, offset)
     paper, _ = _fly_feature_level(dataclasses.replace(MapperConfig(), nav_attitude_correlation_s=0.0), offset)
     # Each feature is emitted once (when it converges): ~60 of the ~100 tracked ones here.
-    assert len(est) >= 0.8 * len(clean) > 40 and len(paper) == 0
+    assert len(est) >= 0.8 * len(clean) > 40 and len(paper) < 0.1 * len(est)
     dz = np.abs(est[:, 2] - ref[:, 2])
     assert np.median(dz) < 0.25 and np.percentile(dz, 95) < 0.6
 
 
-def test_emitted_points_carry_the_navigation_height_variance():
+def test_emitted_points_carry_their_own_covariance_not_the_navigation_error():
+    """The navigation (exact here) reports 0.8 m of vertical sigma; the points carry the feature's own
+    covariance, relative to the estimate's frame the vehicle also flies in (docs/mapper.md, "Point
+    covariance"): their height sigma is well below the navigation's, and it is honest: the height
+    errors against the truth stay within 3 of their sigmas for 95 % of the points."""
     cfg = MapperConfig()
     rng = np.random.default_rng(1)
     world = _ground_scene(rng)
     mapper = Mapper(cfg, CAMERA, MOUNT)
     cov = np.diag([0.25, 0.25, 0.64] + [0.01] * 3 + [np.radians(0.5) ** 2] * 3)
-    zz = []
+    zz, dz = [], []
     for k in range(60):
         p = np.array([6.0 * k / 15, 0.0, -15.0])
         p_c, R_nc = MOUNT.camera_pose(p, np.eye(3))
@@ -190,7 +199,11 @@ def test_emitted_points_carry_the_navigation_height_variance():
         vis = np.flatnonzero((h[:, 0] > 0) & CAMERA.in_image(uv))[:100]
         step = mapper.step_measurements(NavState(k / 15, p, np.array([6.0, 0, 0]), np.array([1.0, 0, 0, 0]), cov), uv[vis])
         zz.extend(step.points.covariances[:, 2, 2].tolist())
-    assert len(zz) > 50 and min(zz) >= 0.64  # at least the vertical navigation variance
+        # The truth: the ground is flat at 0 in this scene.
+        dz.extend((-step.points.positions_ned_m[:, 2]).tolist())
+    zz, dz = np.array(zz), np.array(dz)
+    assert len(zz) > 50 and np.median(zz) < 0.64 and min(zz) < 0.64  # the navigation variance is not in them
+    assert np.mean(np.abs(dz) < 3.0 * np.sqrt(zz)) > 0.95
 
 
 # ----------------------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ from companion.desk import report
 from companion.desk.quality import engine, metrics
 from companion.desk.quality.scenarios import flight_config, parse_set
 from companion.method.control import Controller
-from companion.method.messages import NavState
+from companion.method.messages import NavState, TerrainPoints
 from companion.method.terrain.grid import TerrainGrid
 from drivers.sim.world import World
 
@@ -146,6 +146,40 @@ def test_the_daemon_and_the_engine_share_the_control_decision():
     assert daemon.Controller is Controller
 
 
+def test_the_climb_setpoint_moves_no_faster_than_its_slew_limits():
+    """A wall appears ahead between two ticks: the law's bound jumps; the setpoint rises by at most
+    command_climb_accel_mps2 dt a tick and, once the wall is gone, falls by at most accel_mps2 dt."""
+    world = World.from_dict(WORLD, "known.yaml")
+    cfg = flight_config(world, "known.yaml", "inverse_depth", 1, 15.0)
+    a = cfg.avoidance
+    dt = 1.0 / cfg.control.rate_hz
+    ctl = Controller(cfg)
+    grid = TerrainGrid.from_config(cfg.terrain)
+    nominal = a.nominal_alt_m
+    nav = NavState(t_s=1.0, position_ned_m=np.array([0.0, 0.0, -nominal]), velocity_ned_mps=np.array([6.0, 0.0, 0.0]),
+                   quaternion_wxyz=np.array([1.0, 0.0, 0.0, 0.0]), covariance=np.eye(9) * 0.01)
+    level = ctl.decide(nav, grid)
+    assert abs(level.climb_rate_mps) < 0.05
+    wall = np.array([[n, e, -(nominal + 5.0)] for n in np.arange(12.0, 16.0) for e in np.arange(-4.0, 5.0)])
+    grid.insert(TerrainPoints(1.0, wall, np.broadcast_to(np.eye(3) * 0.01, (len(wall), 3, 3)).copy(),
+                              np.arange(len(wall))))
+    climbs = []
+    for k in range(1, 40):
+        d = ctl.decide(replace(nav, t_s=1.0 + k * dt), grid)
+        climbs.append(d.climb_rate_mps)
+    law = d.command.climb_rate_mps
+    assert law >= a.max_climb_mps - 1e-9  # the law asks for its limit at once
+    steps = np.diff([level.climb_rate_mps] + climbs)
+    assert steps.max() <= a.command_climb_accel_mps2 * dt + 1e-9 and steps[0] > 0
+    assert climbs[-1] == pytest.approx(law)  # and gets it, a few ticks later
+    empty = TerrainGrid.from_config(cfg.terrain)
+    falls = [ctl.decide(replace(nav, t_s=1.0 + (40 + k) * dt), empty).climb_rate_mps for k in range(10)]
+    assert np.diff([climbs[-1]] + falls).min() >= -a.accel_mps2 * dt - 1e-9
+    # Below control.min_alt_m nothing is sent and the next setpoint starts afresh.
+    low = ctl.decide(replace(nav, t_s=10.0, position_ned_m=np.array([0.0, 0.0, -1.0])), grid)
+    assert low.send is False
+
+
 def test_the_engine_flies_the_same_flight_for_the_same_inputs(tmp_path):
     path = tmp_path / "short.yaml"
     path.write_text(json.dumps({"name": "short", "circuit": {"waypoints_ne_m": [[0, 0], [40, 0], [40, 20], [0, 20]],
@@ -163,8 +197,9 @@ def test_the_engine_flies_the_same_flight_for_the_same_inputs(tmp_path):
 
 def test_quality_quick_subset_runs_end_to_end(tmp_path):
     out = tmp_path / "q"
-    proc = subprocess.run([sys.executable, "-m", "companion.cli", "quality", "--quick", "--output", str(out)],
-                          capture_output=True, text=True, timeout=600, cwd=ROOT)
+    baseline = ROOT / "docs" / "quality" / "baseline.json"
+    proc = subprocess.run([sys.executable, "-m", "companion.cli", "quality", "--quick", "--output", str(out),
+                           "--baseline", str(baseline)], capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     doc = json.loads((out / "quality.json").read_text())
     assert doc["schema"] == "companion.quality/1" and len(doc["runs"]) == 2
@@ -178,6 +213,13 @@ def test_quality_quick_subset_runs_end_to_end(tmp_path):
         assert isinstance(lap["false_climbs"], int)
         assert all(isinstance(run["map"]["flat"][k], float) for k in ("bias_m", "rmse_m", "within_1m"))
         assert isinstance(run["speed_flown_mps"], float) and run["speed_flown_mps"] > 1.0
+    # The comparison: each scenario's figures before (the committed baseline) and now.
+    before = {(r["scenario"], r["parameterisation"]): r for r in json.loads(baseline.read_text())["summary"]}
+    assert "## Against the baseline" in md and doc["baseline"]["path"] == str(baseline)
+    for row in doc["summary"]:
+        old = before[(row["scenario"], row["parameterisation"])]
+        assert (f"| {row['scenario']} | inverse depth | {old['first_pass_min_clearance_fraction']:.2f} -> "
+                f"{row['first_pass_min_clearance_fraction']:.2f}") in md
     default = next(r for r in doc["runs"] if r["scenario"] == "default")
     assert default["laps"][0]["needed_s"] > 0 and "building" in default["map"]["obstacles"]
     assert (out / "quality" / "default_worst_first_pass.png").stat().st_size > 10_000
@@ -189,6 +231,8 @@ def test_quality_quick_subset_runs_end_to_end(tmp_path):
     (["--set", "nonsense"], "section.key=value"),
     (["--scenario", "no_such_world"], "no_such_world"),
     (["--seeds", "x"], "--seeds"),
+    (["--baseline", "no_such_quality.json"], "--baseline no_such_quality.json"),
+    (["--notes", "no_such_notes.md"], "--notes no_such_notes.md: no such file"),
 ])
 def test_quality_refuses_a_wrong_setting_in_one_line_before_flying(tmp_path, args, words):
     refuses_in_one_line(["quality", "--output", str(tmp_path / "q"), *args], words)

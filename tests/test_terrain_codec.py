@@ -81,7 +81,7 @@ def test_grid_tiles_survive_the_wire():
     [
         (lambda d: b"XXXX" + d[4:], "magic"),
         (lambda d: d[:4] + struct.pack("<H", 2) + d[6:], "version"),
-        (lambda d: d[:6] + struct.pack("<H", 0b100111) + d[8:], "layers"),
+        (lambda d: d[:6] + struct.pack("<H", 0b100000111) + d[8:], "layers"),
         (lambda d: d[:6] + struct.pack("<H", 0b011) + d[8:], "layers"),
         (lambda d: d[:-1], "length"),
         (lambda d: d + b"\0", "length"),

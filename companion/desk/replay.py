@@ -263,7 +263,7 @@ def run_replay(
             image = clamp_black(sample.frame.image, black_level_for(sample.image_path, black_level))
             a = time.perf_counter()
             step = mapper.step(sample.nav, image)
-            stats = grid.insert(step.points)
+            stats = grid.add_evidence(step.points, step.free_space, step.floors)
             mapper_s += time.perf_counter() - a
             if step.rejected_reason:
                 counts["refused"] += 1

@@ -1,16 +1,21 @@
 """Pull-up / push-over terrain avoidance (seed 000, section III; derivation in docs/avoidance.md).
 
-Along the horizontal velocity, every mapped cell within the miss distance imposes a lower bound
+Along the horizontal direction of travel, every mapped cell within the miss distance imposes a lower bound
 on the climb rate now: the least climb rate from which a vertical profile with acceleration
 ``+-a_c`` (and the climb-rate limit) still reaches ``h_i + h_c`` by the time the vehicle comes
 within the miss distance of the cell, arriving with zero vertical speed (a smooth pull-up). The
 command is the largest of these bounds and of the nominal-altitude command, clipped to the
 vehicle's climb and descent limits. Signs: altitude ``h`` and climb rate ``w`` are up-positive.
 
+The height the law takes for each cell (:func:`law_heights`) reads the map's evidence as such: a
+risk quantile of the cell's height estimate, never above the free space a line of sight proved
+above the cell, never below the least a feature not yet converged says the terrain there reaches.
+
 Functions in derivation order: :func:`time_to_go` (Delta t_i), :func:`height_restriction`
 (eq. 18), :func:`minimum_climb_rate` (eqs. 19-20 completed with the push-over and the climb-rate
 limit), :func:`nominal_climb_rate` (return to the nominal altitude), :func:`margin_height` (a cell
-as high as its estimate plus k sigma), then :class:`PullUpLaw`.
+as high as its estimate plus k sigma), :func:`fill_unknown`, :func:`law_heights`, the speed limit for a late obstacle
+(:func:`climb_time`, :func:`brake_speed`, :func:`climb_speed_limit`), then :class:`PullUpLaw`.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import AvoidanceConfig
-from companion.method.terrain.grid import TerrainGrid
+from companion.method.terrain.grid import Corridor, TerrainGrid
 
 
 def time_to_go(along_m: np.ndarray, cross_m: np.ndarray, radius_m: float, speed_mps: float) -> np.ndarray:
@@ -101,12 +106,14 @@ class AvoidanceCommand:
     climb_rate_mps: commanded climb rate, clipped to [-max_descent, max_climb].
     nominal_climb_mps: what the nominal-altitude command alone asks.
     limiting_cell_ne: centre (north, east) of the cell that set the command, None if nominal did.
-    limiting_height_m: that cell's height plus its uncertainty margin (``margin_height``; or the height
-        assumed for it when unmapped); NaN if none.
+    limiting_height_m: the height the law took for that cell (:func:`law_heights`); NaN if none.
     time_to_go_s: Delta t of that cell (NaN if none).
     required_alt_m: eq. 18, h_min of that cell (NaN if none).
     engaged: an obstacle demands more than the nominal command.
     unknown_cells_ahead: corridor cells with no evidence and no mapped cell near enough to stand in.
+    holding_over_unknown: a descent held because the ground below is unseen.
+    speed_limit_mps: the horizontal speed at which the law still clears the mapped terrain ahead
+        (:func:`climb_speed_limit`; inf: none, or ``speed_limit`` off, or hovering).
     """
 
     climb_rate_mps: float
@@ -118,15 +125,20 @@ class AvoidanceCommand:
     engaged: bool
     unknown_cells_ahead: int
     holding_over_unknown: bool = False
+    speed_limit_mps: float = math.inf
 
 
-def known_fraction_below(grid: TerrainGrid, position_ne: np.ndarray, radius_m: float,
-                         direction_ne: np.ndarray | None = None) -> float:
-    """Fraction of the cells below the vehicle that hold evidence: the cells whose centre lies within
-    ``radius_m`` of it (hover), or, moving along the unit ``direction_ne``, those of the ground it has
-    just flown over (``radius_m`` back along track, ``radius_m`` either side). Looking back and not
-    around: at the far edge of a plain roof the mapped ground ahead would otherwise fill the disc
-    before the vehicle has left the roof."""
+def ground_below(grid: TerrainGrid, position_ne: np.ndarray, radius_m: float,
+                 direction_ne: np.ndarray | None = None) -> tuple[float, float, float]:
+    """What the map knows of the cells below the vehicle: those whose centre lies within ``radius_m``
+    of it (hover), or, moving along the unit ``direction_ne``, those of the ground it has just flown
+    over (``radius_m`` back along track, ``radius_m`` either side). Looking back and not around: at
+    the far edge of a plain roof the mapped ground ahead would otherwise fill the disc before the
+    vehicle has left the roof.
+
+    Returns ``(mapped, seen, top)``: the fraction of those cells holding evidence; the fraction
+    holding evidence or crossed by a line of sight (a ceiling); and the highest ceiling of the cells
+    crossed but not mapped (-inf when none): the most the terrain there may hold."""
     if direction_ne is None:
         disc = grid.corridor(position_ne, np.array([1.0, 0.0]), 0.0, radius_m)
         inside = np.hypot(disc.north_m - position_ne[0], disc.east_m - position_ne[1]) <= radius_m
@@ -134,14 +146,20 @@ def known_fraction_below(grid: TerrainGrid, position_ne: np.ndarray, radius_m: f
         disc = grid.corridor(position_ne, -np.asarray(direction_ne, dtype=np.float64), radius_m, radius_m)
         inside = (disc.along_m >= -0.5 * grid.cell_size_m) & (disc.along_m <= radius_m)
     total = int(np.count_nonzero(inside))
-    return float(np.count_nonzero(inside & np.isfinite(disc.height_m))) / total if total else 0.0
+    if not total:
+        return 0.0, 0.0, -math.inf
+    mapped = inside & np.isfinite(disc.height_m)
+    ceiling = disc.ceiling_m if disc.ceiling_m is not None else np.full(len(inside), np.inf)
+    crossed = inside & ~mapped & np.isfinite(ceiling)
+    top = float(ceiling[crossed].max()) if crossed.any() else -math.inf
+    return (float(np.count_nonzero(mapped)) / total, float(np.count_nonzero(mapped | crossed)) / total, top)
 
 
 def margin_height(height_m: np.ndarray, variance: np.ndarray, k: float) -> np.ndarray:
-    """The height the law keeps its clearance above: ``h + k sqrt(variance)`` per cell (K,) (NaN
-    stays NaN). The clearance is meant above the true terrain, and the map only estimates it: a cell
-    known to +-0.6 m (a few points, each carrying the 0.8 m vertical navigation error of its pass)
-    is, with k = 2, taken 1.2 m higher. Disputed cells (points far below the top, which widen the
+    """The risk quantile of each cell's height: ``h + k sqrt(variance)`` per cell (K,) (NaN stays
+    NaN). The clearance is meant above the true terrain, and the map only estimates it: a cell
+    known to +-0.6 m is, with k = 2, taken 1.2 m higher (the true height lies below with about 98 %
+    probability for a Gaussian estimate). Disputed cells (points far below the top, which widen the
     variance: docs/terrain.md) get more margin, well-observed ground less."""
     if k <= 0.0:
         return height_m
@@ -175,6 +193,94 @@ def fill_unknown(along_m: np.ndarray, height_m: np.ndarray, fill_m: float, cell_
     return h
 
 
+def law_heights(along_m: np.ndarray, corridor: Corridor, k_sigma: float, fill_m: float, cell_m: float,
+                hover: bool) -> np.ndarray:
+    """The height the law keeps its clearance above, per corridor cell (K,), sorted along track
+    (docs/avoidance.md, "What a cell may hold"):
+
+    * a mapped cell: its risk quantile ``h + k sigma`` (:func:`margin_height`, with the variance of
+      the surface height its evidence gives, ``Corridor.height_variance``), but never above its
+      ceiling (the lowest height a line of sight crossed it at: the terrain is below) nor below
+      its estimate ``h``: ``max(h, min(h + k sigma, ceiling))``;
+    * an unmapped cell: the highest mapped cell within ``fill_m`` along track stands in
+      (:func:`fill_unknown`), never above the cell's own ceiling; NaN where nothing mapped is near;
+    * every cell: at least its floor (the least the terrain reaches, from features not yet
+      converged): ``max(., floor)``; an unmapped cell with a floor and nothing near counts at it.
+    """
+    h = corridor.height_m
+    var = corridor.height_variance if corridor.height_variance is not None else corridor.variance
+    n = len(h)
+    ceiling = corridor.ceiling_m if corridor.ceiling_m is not None else np.full(n, np.inf)
+    floor = corridor.floor_m if corridor.floor_m is not None else np.full(n, -np.inf)
+    known = (corridor.count > 0) & np.isfinite(h)
+    with np.errstate(invalid="ignore"):
+        taken = np.where(known, np.fmax(h, np.fmin(margin_height(h, var, k_sigma), ceiling)), np.nan)
+        taken = fill_unknown(along_m, taken, fill_m, cell_m, hover)
+        taken = np.where(known | np.isnan(taken), taken, np.fmin(taken, ceiling))
+    return np.fmax(taken, np.where(np.isfinite(floor), floor, np.nan))
+
+
+def climb_time(gain_m: np.ndarray, climb_now_mps: float, accel: float, max_climb: float) -> np.ndarray:
+    """Shortest time (s) until the altitude has risen by ``gain_m`` (K,), from the climb rate
+    ``climb_now_mps``, with acceleration ``+-accel``, climb rate at most ``max_climb``, ending level
+    (docs/avoidance.md, "Slowing for a late obstacle"); 0 where ``gain_m <= 0``. From level flight it
+    is :func:`stopping_time`.
+
+    Bang-bang from ``w0``: the peak rate ``w_p = sqrt(a H + w0^2 / 2)`` (the gain
+    ``(w_p^2 - w0^2)/(2a) + w_p^2/(2a) = H``), reached in ``(w_p - w0)/a`` and lost in ``w_p/a``;
+    above ``max_climb`` the profile cruises at the limit. A vehicle already climbing so fast that its
+    braking distance ``w0^2/(2a)`` exceeds ``H`` passes ``H`` while braking, at
+    ``(w0 - sqrt(w0^2 - 2 a H)) / a`` (it overshoots). A vehicle descending first stops: ``w0 < 0``
+    costs the gain ``w0^2 / (2a)`` back and ``|w0|/a``."""
+    h = np.asarray(gain_m, dtype=np.float64)
+    a, w_max = float(accel), float(max_climb)
+    w0 = min(float(climb_now_mps), w_max)
+    extra_t = 0.0
+    if w0 < 0.0:  # brake the descent first: lose w0^2/(2a) more, spend |w0|/a
+        h = h + w0 * w0 / (2.0 * a)
+        extra_t, w0 = -w0 / a, 0.0
+    if w_max <= 0.0:
+        return np.where(h > 0, np.inf, 0.0)
+    wp = np.sqrt(np.maximum(a * h + 0.5 * w0 * w0, 0.0))
+    free = (wp - w0) / a + wp / a
+    capped = (w_max - w0) / a + w_max / a + (h - (2.0 * w_max * w_max - w0 * w0) / (2.0 * a)) / w_max
+    braking = (w0 - np.sqrt(np.maximum(w0 * w0 - 2.0 * a * h, 0.0))) / a
+    t = np.where(w0 * w0 >= 2.0 * a * h, braking, np.where(wp <= w_max, free, capped)) + extra_t
+    return np.where(np.asarray(gain_m) > 0, t, 0.0)
+
+
+def brake_speed(distance_m: np.ndarray, decel: float, reaction_s: float) -> np.ndarray:
+    """The highest horizontal speed (m/s) from which the vehicle stops within ``distance_m``: it
+    flies on for ``reaction_s`` then brakes at ``decel``, ``v tau + v^2 / (2 a) = d``, so
+    ``v = a (sqrt(tau^2 + 2 d / a) - tau)``; 0 where ``d <= 0``."""
+    d = np.maximum(np.asarray(distance_m, dtype=np.float64), 0.0)
+    a, tau = float(decel), float(reaction_s)
+    return a * (np.sqrt(tau * tau + 2.0 * d / a) - tau)
+
+
+def climb_speed_limit(entry_m: np.ndarray, height_m: np.ndarray, alt_m: float, climb_now_mps: float,
+                      cfg: AvoidanceConfig) -> float:
+    """The speed limit for mapped terrain the law cannot climb over in time (docs/avoidance.md,
+    "Slowing for a late obstacle"): for every cell ahead whose height ``height_m`` (K,; the law's,
+    :func:`law_heights`) + (1 - ``speed_limit_shortfall``) of the clearance lies above the vehicle,
+    the vehicle must either make that climb before it comes within the miss distance of the cell,
+    ``v <= entry / climb_time`` (``entry_m`` (K,): the distance along track to that point), or be
+    able to stop first, ``v <= brake_speed(entry)``; the limit is the least over the cells of the
+    larger of the two. A cell already within reach (entry <= 0) stops the vehicle until the climb is
+    made. inf where nothing limits. Shortfalls within the tolerance are the law's to make up as it
+    flies: the vehicle never brakes for a few centimetres of noise."""
+    with np.errstate(invalid="ignore"):
+        gain = height_m + cfg.clearance_m * (1.0 - cfg.speed_limit_shortfall) - alt_m
+        tall = np.isfinite(gain) & (gain > 0.0)
+    if not tall.any():
+        return math.inf
+    d = np.maximum(entry_m[tall], 0.0)
+    t = climb_time(gain[tall], climb_now_mps, cfg.accel_mps2, cfg.max_climb_mps)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        by_climb = np.where(t > 0, d / t, np.inf)
+    return float(np.min(np.maximum(by_climb, brake_speed(d, cfg.brake_accel_mps2, cfg.reaction_time_s))))
+
+
 class PullUpLaw:
     """The avoidance law of seed 000, section III, on a :class:`TerrainGrid`."""
 
@@ -182,9 +288,13 @@ class PullUpLaw:
         self.cfg = cfg
 
     def command(
-        self, position_ned, velocity_ned, grid: TerrainGrid, nominal_alt_m: float | None = None
+        self, position_ned, velocity_ned, grid: TerrainGrid, nominal_alt_m: float | None = None,
+        direction_ne=None,
     ) -> AvoidanceCommand:
         """Climb-rate command for a vehicle at ``position_ned`` (3,) moving at ``velocity_ned`` (3,).
+        ``direction_ne`` (2,): the direction the vehicle means to fly (its route's leg), along which
+        the corridor looks, at the speed over ground in that direction; None = along the velocity
+        (below ``hover_speed_mps`` the look-ahead is then a disc around the vehicle).
 
         ValueError on non-finite state (the caller must not command on it)."""
         cfg = self.cfg
@@ -200,7 +310,12 @@ class PullUpLaw:
         # The zone of a cell: within the miss distance of any point of the cell (half diagonal).
         radius = cfg.miss_distance_m + grid.cell_size_m * math.sqrt(0.5)
         speed = float(np.hypot(v[0], v[1]))
-        hover = speed < max(cfg.hover_speed_mps, 1e-9)
+        intent = None
+        if direction_ne is not None:
+            d = np.asarray(direction_ne, dtype=np.float64).reshape(2)
+            norm = float(np.hypot(d[0], d[1]))
+            intent = d / norm if norm > 0 and math.isfinite(norm) else None
+        hover = intent is None and speed < max(cfg.hover_speed_mps, 1e-9)
         fill = cfg.unknown_fill_m
         # The corridor starts `fill` behind the vehicle (and the hover disc is `fill` wider) so
         # that mapped cells just outside the zone can stand in for unmapped ones inside it.
@@ -210,12 +325,12 @@ class PullUpLaw:
             along = corr.along_m
             zone = np.hypot(corr.north_m - p[0], corr.east_m - p[1]) <= radius
         else:
-            direction, speed_used = v[:2] / speed, speed
+            direction = intent if intent is not None else v[:2] / speed
+            speed_used = max(float(v[:2] @ direction), 0.0)  # the speed over ground along the intent
             corr = grid.corridor(p[:2] - fill * direction, direction, cfg.lookahead_m + fill, radius)
             along = corr.along_m - fill
             zone = (along >= 0.0) | (along * along + corr.cross_m * corr.cross_m <= radius * radius)
-        heights = fill_unknown(along, margin_height(corr.height_m, corr.variance, cfg.height_margin_sigma),
-                               fill, grid.cell_size_m, hover)[zone]
+        heights = law_heights(along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover)[zone]
         along, cross = along[zone], corr.cross_m[zone]
         north, east = corr.north_m[zone], corr.east_m[zone]
         considered = np.isfinite(heights)
@@ -232,12 +347,23 @@ class PullUpLaw:
         cmd = min(max(max(w_nom, best_w), -cfg.max_descent_mps), cfg.max_climb_mps)
         # Push over only into terrain the map has seen: after a building whose roof has no texture,
         # the cells under the vehicle are unknown (not ground at zero), so hold the altitude until
-        # mapped terrain is below again (docs/avoidance.md, "Unmapped cells").
-        holding = cmd < 0.0 and known_fraction_below(grid, p[:2], radius, None if hover else direction) < cfg.descend_known_fraction
-        if holding:
-            cmd = 0.0
+        # mapped terrain is below again, or descend only as far as the free space seen below
+        # proves clear (docs/avoidance.md, "Unmapped cells").
+        holding = False
+        if cmd < 0.0:
+            mapped, seen, top = ground_below(grid, p[:2], radius, None if hover else direction)
+            if mapped < cfg.descend_known_fraction:
+                if seen < cfg.descend_known_fraction:
+                    holding, cmd = True, 0.0
+                elif math.isfinite(top):  # no lower than the clearance above the highest ceiling
+                    cmd = max(cmd, min(nominal_climb_rate(top + cfg.clearance_m - alt, a, cfg.nominal_time_constant_s), 0.0))
+        limit = math.inf
+        if cfg.speed_limit and not hover:
+            ahead = considered & (along > 0.0)
+            entry = along[ahead] - np.sqrt(np.maximum(radius * radius - cross[ahead] ** 2, 0.0))
+            limit = climb_speed_limit(entry, heights[ahead], alt, -v[2], cfg)
         if idx is None or not engaged:
-            return AvoidanceCommand(cmd, w_nom, None, math.nan, math.nan, math.nan, False, unknown_left, holding)
+            return AvoidanceCommand(cmd, w_nom, None, math.nan, math.nan, math.nan, False, unknown_left, holding, limit)
         h_i = float(heights[idx])
         return AvoidanceCommand(
             climb_rate_mps=cmd,
@@ -249,6 +375,7 @@ class PullUpLaw:
             engaged=True,
             unknown_cells_ahead=unknown_left,
             holding_over_unknown=holding,
+            speed_limit_mps=limit,
         )
 
 

@@ -11,7 +11,8 @@ One decision:
   ``avoidance.enabled`` false the nominal-altitude command alone (the law is still evaluated, and
   published, so an operator sees what it would have done);
 * horizontal: the waypoint guidance along ``control.waypoints_ne_m`` at ``control.cruise_speed_mps``
-  when a route is configured, else the vehicle's own horizontal velocity (advisory use);
+  when a route is configured, slowed to the law's speed limit for mapped terrain it cannot climb
+  over in time, else the vehicle's own horizontal velocity (advisory use);
 * below ``control.min_alt_m`` nothing is to be sent: take-off and landing belong to the autopilot,
   and a velocity setpoint would cancel them.
 """
@@ -57,6 +58,22 @@ class Controller:
             WaypointGuidance(cfg.control.waypoints_ne_m, cfg.control.cruise_speed_mps)
             if len(cfg.control.waypoints_ne_m) >= 2 else None
         )
+        self._climb_sent: float | None = None  # the last climb-rate setpoint sent, and its time
+        self._climb_t = 0.0
+
+    def _slew(self, climb: float, t_s: float, sending: bool) -> float:
+        """The climb-rate setpoint moved from the last one by at most ``command_climb_accel_mps2`` dt
+        up and ``accel_mps2`` dt down (docs/avoidance.md, "A smooth command"). The law's bound is a
+        profile with acceleration a_c, so a limit above a_c leaves the climb it plans intact; what
+        the limit removes are the steps between control ticks when the limiting cell changes, which
+        pitch a multirotor and shake the features out of the camera's tracking. Starts afresh below
+        ``control.min_alt_m`` (nothing is sent there) and after a gap of more than a second."""
+        a = self.cfg.avoidance
+        last, dt = self._climb_sent, t_s - self._climb_t
+        if sending and last is not None and a.command_climb_accel_mps2 > 0 and 0.0 <= dt <= 1.0:
+            climb = min(max(climb, last - a.accel_mps2 * dt), last + a.command_climb_accel_mps2 * dt)
+        self._climb_sent, self._climb_t = (climb if sending else None), t_s
+        return climb
 
     @property
     def lap(self) -> int:
@@ -66,17 +83,25 @@ class Controller:
         """One control step on ``nav`` (finite, fresh: the caller checks age) and the map ``grid``
         (the caller holds its lock). ValueError from the law on a non-finite state."""
         a = self.cfg.avoidance
-        cmd = self.law.command(nav.position_ned_m, nav.velocity_ned_mps, grid)
         yaw = None
         lap = 0
+        intent = None
         if self.guidance is not None:
             out = self.guidance.update(nav.position_ned_m[:2])
             horizontal, yaw, lap = out.velocity_ne_mps, out.yaw_rad, out.lap
+            intent = horizontal  # the law looks along the leg the vehicle is turning onto
         else:
             horizontal = np.asarray(nav.velocity_ned_mps, dtype=float)[:2]
+        cmd = self.law.command(nav.position_ned_m, nav.velocity_ned_mps, grid, direction_ne=intent)
+        if self.guidance is not None and a.enabled:
+            # Never faster than the law can clear the mapped terrain ahead at (docs/avoidance.md).
+            speed = float(np.hypot(horizontal[0], horizontal[1]))
+            if speed > cmd.speed_limit_mps:
+                horizontal = horizontal * (cmd.speed_limit_mps / speed)
         climb = cmd.climb_rate_mps
         if not a.enabled:  # nominal altitude only (demo --no-avoid); the law is still published
             climb = min(max(cmd.nominal_climb_mps, -a.max_descent_mps), a.max_climb_mps)
-        velocity = np.array([horizontal[0], horizontal[1], -climb], dtype=float)
         send = nav.altitude_m >= self.cfg.control.min_alt_m
+        climb = self._slew(climb, nav.t_s, send)
+        velocity = np.array([horizontal[0], horizontal[1], -climb], dtype=float)
         return ControlDecision(cmd, velocity, yaw, lap, send)

@@ -91,3 +91,39 @@ class TerrainPoints:
 
     def __len__(self) -> int:
         return len(self.positions_ned_m)
+
+
+@dataclass(frozen=True, slots=True)
+class FreeSpaceRays:
+    """Segments the camera saw through this frame, handed from the mapper to the terrain map
+    (docs/terrain.md, "Free space"): from the camera centre ``origin_ned_m`` (3,) to each of
+    ``ends_ned_m`` (K, 3), the nearest its feature can be (k sigma). Nothing of the terrain lies on
+    a segment: a feature was seen at its end."""
+
+    t_s: float
+    origin_ned_m: np.ndarray
+    ends_ned_m: np.ndarray
+
+    @classmethod
+    def empty(cls, t_s: float = 0.0) -> "FreeSpaceRays":
+        return cls(t_s, np.zeros(3), np.zeros((0, 3)))
+
+    def __len__(self) -> int:
+        return len(self.ends_ned_m)
+
+
+@dataclass(frozen=True, slots=True)
+class TerrainFloors:
+    """Lower bounds on the terrain's height, handed from the mapper to the terrain map (docs/mapper.md,
+    "Bounds of an unconverged feature"): the terrain in the cell of each ``positions_ned_m`` (K, 3)
+    row's north and east reaches at least that row's height (``-down``)."""
+
+    t_s: float
+    positions_ned_m: np.ndarray
+
+    @classmethod
+    def empty(cls, t_s: float = 0.0) -> "TerrainFloors":
+        return cls(t_s, np.zeros((0, 3)))
+
+    def __len__(self) -> int:
+        return len(self.positions_ned_m)

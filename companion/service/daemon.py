@@ -392,9 +392,10 @@ class Daemon:
             return
         t0, c0 = time.perf_counter(), time.thread_time()
         step = self.mapper.step(nav, frame.image)
-        if len(step.points):
+        changed = bool(len(step.points) or len(step.free_space) or len(step.floors))
+        if changed:
             with self.grid_lock:
-                stats = self.grid.insert(step.points)
+                stats = self.grid.add_evidence(step.points, step.free_space, step.floors)
                 self._map_updates.append(frame.t_s)
             self.points_converged += len(step.points)
             for name in ("rejected_invalid", "rejected_outlier", "rejected_imprecise"):
@@ -403,7 +404,7 @@ class Daemon:
         self.step_cpu_ms.add((time.thread_time() - c0) * 1e3)
         self.frames_mapped += 1
         self.last_frame_mapped_t = frame.t_s
-        if len(step.points) and self._loop is not None:
+        if changed and self._loop is not None:
             self._loop.call_soon_threadsafe(self._map_updated.set)  # the control loop runs at once
 
     # ---- control ---------------------------------------------------------------------------
@@ -503,6 +504,7 @@ class Daemon:
             "nominal_alt_m": self.cfg.avoidance.nominal_alt_m,
             "nominal_climb_mps": num(cmd.nominal_climb_mps),
             "unknown_cells_ahead": int(cmd.unknown_cells_ahead),
+            "speed_limit_mps": num(cmd.speed_limit_mps),
             "setpoint_velocity_ned_mps": [round(float(v), 3) for v in velocity],
             "reason": self.command_state,
         }

@@ -119,8 +119,7 @@ def serve(conn: Connection) -> None:
                 os.close(fd)
             image = np.ndarray(shape, dtype=np.dtype(dtype), buffer=buffer)
             step = mapper.step(nav, image)
-            if len(step.points):
-                grid.insert(step.points)  # the daemon inserts the same points into its map
+            grid.add_evidence(step.points, step.free_space, step.floors)  # the daemon's map takes the same
             reply = ("ok", step)
         except Exception as exc:  # noqa: BLE001 - reported to the daemon, which counts and logs it
             reply = ("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")

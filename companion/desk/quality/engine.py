@@ -299,9 +299,8 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
                 if hit.any():
                     pts = p_c[None, :] + r[hit, None] * (rays[hit] / np.linalg.norm(rays[hit], axis=1, keepdims=True))
                     out.swath.append(np.floor(pts[:, :2] / grid.cell_size_m).astype(np.int64))
-                if len(step.points):
-                    grid.insert(step.points)
-                    rec.points_converged += len(step.points)
+                grid.add_evidence(step.points, step.free_space, step.floors)
+                rec.points_converged += len(step.points)
                 if on_frame is not None:
                     on_frame(t, truth, p_c, R_nc, image, step, mapper, nav_f, grid)
         rec.complete = True

@@ -213,8 +213,62 @@ obstacle lies far enough along the first leg to be approached at the commanded h
 """
 
 
+BASELINE_FIGURES = (  # (summary key, heading, format, better: +1 higher, -1 lower)
+    ("first_pass_min_clearance_fraction", "first-pass clearance", "{:.2f}", +1),
+    ("cruise_excess_median_m", "cruise excess median (m)", "{:.1f}", -1),
+    ("cruise_excess_p95_m", "cruise excess p95 (m)", "{:.1f}", -1),
+    ("engaged_flat_fraction", "engaged over flat", "{:.2f}", -1),
+    ("false_climbs", "false climbs", "{:.0f}", -1),
+    ("flat_within_1m", "flat within 1 m", "{:.2f}", +1),
+    ("all_rmse_m", "all RMSE (m)", "{:.2f}", -1),
+    ("speed_flown_mps", "speed flown (m/s)", "{:.1f}", +1),
+)
+
+
+def load_baseline(path: str | os.PathLike) -> dict[str, Any]:
+    """A previous run's quality.json, to compare against (ConfigError naming the file when it
+    cannot be used)."""
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text())
+    except OSError as exc:
+        raise ConfigError(f"--baseline {p}: cannot read: {exc.strerror or exc}") from exc
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"--baseline {p}: not JSON: {exc}") from exc
+    if not isinstance(doc, dict) or doc.get("schema") != SCHEMA or not isinstance(doc.get("summary"), list):
+        raise ConfigError(f"--baseline {p}: not a quality.json of schema {SCHEMA!r}")
+    return {"path": str(p), "generated": doc.get("generated", ""), "command": doc.get("command", ""),
+            "summary": doc["summary"]}
+
+
+def baseline_lines(doc: dict[str, Any]) -> list[str]:
+    """The per-scenario figures before (the baseline) and now, side by side: 'before -> now', with
+    the change marked where it is better (+) or worse (-) by more than rounding."""
+    base = doc.get("baseline")
+    if not base:
+        return []
+    before = {(r["scenario"], r["parameterisation"]): r for r in base["summary"]}
+    lines = ["## Against the baseline", "",
+             f"Before: `{base['command']}` on {base['generated'][:10]} (`{base['path']}`); now: this run. "
+             "Each cell is before -> now, worst over the seeds as above; (+) better, (-) worse.", "",
+             "| scenario | mapper | " + " | ".join(h for _, h, _, _ in BASELINE_FIGURES) + " |",
+             "|---|---|" + "---|" * len(BASELINE_FIGURES)]
+    for s in doc["summary"]:
+        b = before.get((s["scenario"], s["parameterisation"]))
+        cells = []
+        for key, _, fmt, better in BASELINE_FIGURES:
+            now, old = s.get(key), (b or {}).get(key)
+            mark = ""
+            if isinstance(now, (int, float)) and isinstance(old, (int, float)) and fmt.format(now) != fmt.format(old):
+                mark = " (+)" if (now - old) * better > 0 else " (-)"
+            cells.append(f"{_f(old, fmt)} -> {_f(now, fmt)}{mark}")
+        lines.append(f"| {s['scenario']} | {s['parameterisation'].replace('_', ' ')} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
 def markdown(doc: dict[str, Any], figures: dict[str, str]) -> str:
-    """quality.md: how it was made, the headline, the summary per scenario, every run, the pictures."""
+    """quality.md: how it was made, the headline, the summary per scenario, the comparison with a
+    baseline when one was given, every run, the pictures."""
     opts = doc["options"]
     lines = [
         "# Scenario suite: what a pilot sees",
@@ -248,7 +302,10 @@ def markdown(doc: dict[str, Any], figures: dict[str, str]) -> str:
             f"{_f(s['flat_bias_m'])} | {_f(s['flat_within_1m'])} | {_f(s['all_rmse_m'])} | "
             f"{_f(s['obstacle_height_lap2_fraction'])} | {_f(s['speed_flown_mps'], '{:.1f}')} / "
             f"{_f(s['speed_commanded_mps'], '{:.1f}')} |")
-    lines += ["", "Scenarios:", ""]
+    lines += [""] + baseline_lines(doc)
+    if doc.get("notes"):
+        lines += [doc["notes"].rstrip(), ""]
+    lines += ["Scenarios:", ""]
     for name, desc in sorted(doc["scenarios"].items()):
         lines.append(f"- **{name}**: {desc}")
     lines += ["", DEFINITIONS, "## Every run", "",
@@ -335,6 +392,10 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="service configuration applied to every flight (YAML, partial)")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
                    help="one service setting for every flight (repeatable; after --config)")
+    p.add_argument("--baseline", metavar="QUALITY_JSON",
+                   help="a previous run's quality.json: quality.md then shows each scenario's figures before and now")
+    p.add_argument("--notes", metavar="MARKDOWN",
+                   help="a Markdown file put into quality.md after the tables (what the figures mean, written by a person; read when the flights are done)")
     p.add_argument("--output", default="quality-report",
                    help="folder for quality.json, quality.md and quality/*.png (docs = the committed table)")
 
@@ -384,6 +445,9 @@ def main(args: argparse.Namespace) -> int:
         if not 1 <= args.jobs <= 256:
             raise ConfigError(f"--jobs must be within 1..256, got {args.jobs}")
         overrides = _overrides(args)
+        baseline = load_baseline(args.baseline) if args.baseline else None
+        if args.notes and not Path(args.notes).is_file():
+            raise ConfigError(f"--notes {args.notes}: no such file")
         # Every scenario and override is validated before any flight starts.
         for s in scenarios:
             flight_config(World.load(s), s, params[0], seeds[0], CAMERA_RATE_HZ, overrides)
@@ -424,6 +488,14 @@ def main(args: argparse.Namespace) -> int:
         "summary": summarise(runs),
         "runs": runs,
     }
+    if baseline is not None:
+        doc["baseline"] = baseline
+    if args.notes:  # read after the flights, so that it can be written while they fly
+        try:
+            doc["notes"] = Path(args.notes).read_text()
+        except OSError as exc:
+            print(f"companion quality: --notes {args.notes}: cannot read: {exc.strerror or exc}; written without it",
+                  file=sys.stderr)
     fig_dir = out / "quality"
     try:
         figures = worst_first_pass_figures(results, fig_dir, "quality/")

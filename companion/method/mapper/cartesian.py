@@ -146,6 +146,21 @@ def relative_depth_sigma(y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin
         return np.where(r > 0, np.sqrt(np.maximum(var, 0.0)) / r, np.inf)
 
 
+def point_at_sigma(y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin: np.ndarray, k: float) -> np.ndarray:
+    """The point ``k`` sigma nearer than the estimate (``k < 0``: farther) along the ray from
+    ``origin`` (N, 3; camera centre at initialisation): ``X - k sigma_u u`` with ``u`` that ray's
+    unit direction and ``sigma_u^2 = u^T P u`` (N, 3) (first order: the Cartesian model's Gaussian
+    is in ``X``). NaN where a near bound reaches the origin."""
+    X = np.asarray(y, dtype=float)
+    d = X - origin
+    r = np.linalg.norm(d, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = d / r[:, None]
+        sigma = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", u, P, u), 0.0))
+        at = r - k * sigma
+        return np.where((at > 0)[:, None], origin + u * at[:, None], np.nan)
+
+
 def normalise_state(y: np.ndarray) -> np.ndarray:
     """Nothing to wrap in a Cartesian state. (N, 3) -> (N, 3)."""
     return np.array(y, dtype=float)

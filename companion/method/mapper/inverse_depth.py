@@ -320,6 +320,21 @@ def relative_depth_sigma(y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin
     return np.divide(sigma, rho, out=np.full(len(rho), np.inf), where=rho > 0)
 
 
+def point_at_sigma(y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin: np.ndarray, k: float) -> np.ndarray:
+    """The point of each feature's line of sight ``k`` sigma nearer than its estimate (``k < 0``:
+    farther; docs/mapper.md, "Bounds of an unconverged feature"): the anchor ray at inverse depth
+    ``rho + k sigma_rho``, ``a + m_world / (rho + k sigma_rho)`` (N, 3). Inverse depth is Gaussian
+    in ``rho``, so the bound is the model's own however wide: a new feature (``sigma_rho`` the
+    prior's) is only known to lie beyond a few metres, a converged one hardly nearer or farther
+    than its estimate. NaN where ``rho + k sigma_rho <= 0`` (the far bound at infinity).
+    ``origin`` is unused (the Cartesian baseline's signature)."""
+    y = np.asarray(y, dtype=float)
+    rho_k = y[:, RHO] + k * np.sqrt(np.maximum(P[:, RHO, RHO], 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(rho_k > 0, 1.0 / rho_k, np.nan)
+    return y[:, ANCHOR] + world_direction(y, R_ref) * inv[:, None]
+
+
 def normalise_state(y: np.ndarray) -> np.ndarray:
     """Wrap ``psi`` into (-pi, pi] (a shift by 2 pi: the covariance is unchanged). (N, 6) -> (N, 6)."""
     y = np.array(y, dtype=float)

@@ -41,7 +41,7 @@ from companion.method.mapper.matching import (
 )
 from companion.method.mapper.projection import CameraPose, camera_ray_from_pixel
 from companion.method.mapper.update import ekf_update
-from companion.method.messages import NavState, TerrainPoints
+from companion.method.messages import FreeSpaceRays, NavState, TerrainFloors, TerrainPoints
 
 Detector = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -88,6 +88,11 @@ class MapperStep:
     matched_ids / matched_measurements (K,): feature ids and the indices (into the input array) of
     the measurements that updated them; initialised_ids / initialised_measurements likewise;
     removed_ids: features that left the database this step.
+    free_space: the segments from the camera to the nearest each updated feature can be
+    (``mapper.free_space_sigma``; docs/mapper.md, "Bounds of an unconverged feature"), for the
+    map's carving.
+    floors: lower bounds on the terrain's height from the features not yet converged
+    (``mapper.floor_max_depth_sigma_m``; docs/mapper.md, "Bounds of an unconverged feature").
     """
 
     points: TerrainPoints
@@ -109,6 +114,8 @@ class MapperStep:
     initialised_ids: np.ndarray = field(default_factory=_empty_ids)
     initialised_measurements: np.ndarray = field(default_factory=_empty_ids)
     removed_ids: np.ndarray = field(default_factory=_empty_ids)
+    free_space: FreeSpaceRays = field(default_factory=FreeSpaceRays.empty)
+    floors: TerrainFloors = field(default_factory=TerrainFloors.empty)
 
 
 @dataclass(frozen=True, slots=True)
@@ -242,8 +249,6 @@ class Mapper:
         self._detector_shape: tuple[int, ...] | None = None
         self._last_nav_t = np.inf  # time of the last accepted step (no drift before the first)
         self._last_nav_p = np.zeros(3)  # body position at that step
-        self._emit_P_x: np.ndarray | None = None  # this step's P_x and body position, for emission
-        self._emit_p = np.zeros(3)
 
     # ------------------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -313,7 +318,6 @@ class Mapper:
         cfg, db, model = self.cfg, self.db, self.model
         self.frame += 1
         pose = CameraPose.from_nav(nav.position_ned_m, nav.quaternion_wxyz, self.mount)
-        self._emit_P_x, self._emit_p = P_x, pose.p
 
         valid = _in_image(uv, self.camera)  # finite and inside
         # (count_nonzero == len is .all() at a third of its cost, which matters a dozen times a step)
@@ -408,6 +412,8 @@ class Mapper:
             db.has_template[updated] = True
 
         updated_meas = match_idx[ok]  # measurement of each accepted update
+        updated_ids = db.ids[updated].copy()  # before a retired feature's slot takes a new one
+        free_space = self._free_space(nav.t_s, pose.p_c, updated)
 
         # Confidence index: +1 matched, -1 visible but not matched (or refused).
         not_updated = np.ones(len(slots), dtype=bool)
@@ -415,16 +421,16 @@ class Mapper:
         unmatched = slots[not_updated]  # ascending, as slots
         db.adjust_confidence(updated, unmatched, cfg.confidence_max)
 
-        # Convergence: emit a feature the first time its relative depth sigma falls below the limit.
+        # Convergence: a feature goes to the map once, when its depth sigma first falls below
+        # converged_max_depth_sigma_m. Before that, from floor_max_depth_sigma_m on, it bounds its
+        # cell from below every frame (docs/mapper.md, "Bounds of an unconverged feature").
         y_upd, P_upd, R_upd, origin_upd = y_new[ok], P_new[ok], R_ref[point_idx[ok]], db.origin[updated]
         rel = model.relative_depth_sigma(y_upd, P_upd, R_upd, origin_upd)
-        depth = model.depth_from_origin(y_upd, R_upd, origin_upd)
-        newly = (
-            (~db.converged[updated])
-            & (db.updates[updated] >= cfg.converge_min_updates)
-            & (rel < cfg.converged_rel_depth_sigma)
-            & (rel * depth < cfg.converged_max_depth_sigma_m)
-        )
+        depth_sigma = rel * model.depth_from_origin(y_upd, R_upd, origin_upd)
+        ready = (db.updates[updated] >= cfg.converge_min_updates) & (rel < cfg.converged_rel_depth_sigma)
+        newly = ~db.converged[updated] & ready & (depth_sigma < cfg.converged_max_depth_sigma_m)
+        bounding = ~db.converged[updated] & ~newly & ready & (depth_sigma < cfg.floor_max_depth_sigma_m)
+        floors = self._floors(nav.t_s, y_upd[bounding], P_upd[bounding], R_upd[bounding], origin_upd[bounding])
         if np.count_nonzero(newly):
             db.converged[updated[newly]] = True
             emitted.append(self._emitted_points(nav.t_s, updated[newly]))
@@ -439,6 +445,13 @@ class Mapper:
         free = db.free_slots()
         replaceable = unmatched[db.confidence[unmatched] < init_index]
         replaceable = replaceable[np.lexsort((db.born_frame[replaceable], db.confidence[replaceable]))]
+        if cfg.retire_converged:
+            # A converged feature's point is already in the map: its slot goes to new terrain first
+            # (oldest first), before the lost features the paper's rule replaces.
+            done = slots[db.converged[slots]]
+            done = done[~np.isin(done, replaceable)]
+            done = done[np.argsort(db.born_frame[done], kind="stable")]
+            replaceable = np.concatenate([done, replaceable])
         n_new = min(len(candidates), len(free) + len(replaceable))
         targets = np.concatenate([free, replaceable])[:n_new].astype(np.intp)
         replaced = targets[len(free):]
@@ -479,14 +492,50 @@ class Mapper:
             n_excluded=int((blocked & ~used & ~ambiguous).sum()),
             n_prior_fallback=n_fallback,
             init_index=init_index,
-            matched_ids=db.ids[updated].copy(),
+            matched_ids=updated_ids,
             matched_measurements=meas_index[updated_meas].astype(np.int64),
             initialised_ids=new_ids,
             initialised_measurements=meas_index[chosen].astype(np.int64),
             removed_ids=np.concatenate(removed_ids),
+            free_space=free_space,
+            floors=floors,
         )
 
     # ------------------------------------------------------------------------------------------
+    def _free_space(self, t_s: float, camera_ned: np.ndarray, slots: np.ndarray) -> FreeSpaceRays:
+        """The segments this frame saw through (docs/mapper.md, "Bounds of an unconverged feature"): from the camera
+        centre along each updated feature's line of sight, as far as the nearest the feature can be
+        at ``free_space_sigma`` sigma (the model's ``point_at_sigma``, taken as a range from the
+        camera and laid on the line of sight to the estimate, never beyond the estimate)."""
+        k = self.cfg.free_space_sigma
+        if k <= 0 or len(slots) == 0:
+            return FreeSpaceRays(t_s, np.asarray(camera_ned, dtype=float), np.zeros((0, 3)))
+        db = self.db
+        X, _ = self.model.point_from_state(db.y[slots], db.R_ref[slots])
+        near = self.model.point_at_sigma(db.y[slots], db.P[slots], db.R_ref[slots], db.origin[slots], k)
+        to_x = X - camera_ned
+        r = np.sqrt((to_x * to_x).sum(axis=1))
+        r_near = np.sqrt(((near - camera_ned) ** 2).sum(axis=1))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            reach = np.minimum(r_near, r)
+            ends = camera_ned + to_x * (reach / r)[:, None]
+        good = np.isfinite(ends).all(axis=1) & (reach > 0)
+        return FreeSpaceRays(t_s, np.asarray(camera_ned, dtype=float).copy(), ends[good])
+
+    def _floors(self, t_s: float, y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin: np.ndarray) -> TerrainFloors:
+        """Lower bounds on the terrain's height (docs/mapper.md, "Bounds of an unconverged
+        feature"): each feature (rows of y, P, R_ref, origin) lies on the terrain, so the terrain
+        in its cell reaches at least the lower of its estimate and its point ``floor_sigma`` sigma
+        farther along the line of sight (the far bound; for a line of sight looking down, the lower
+        end). Placed at the estimate's north and east."""
+        if len(y) == 0:
+            return TerrainFloors.empty(t_s)
+        X, _ = self.model.point_from_state(y, R_ref)
+        far = self.model.point_at_sigma(y, P, R_ref, origin, -self.cfg.floor_sigma)
+        down = np.fmax(X[:, 2], far[:, 2])  # NED: the lower of the two (NaN far: at infinity, no bound)
+        keep = np.isfinite(X).all(axis=1) & np.isfinite(far[:, 2])
+        return TerrainFloors(t_s, np.column_stack([X[keep, 0], X[keep, 1], down[keep]]))
+
     def _points(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position (K, 3) and its covariance ``J P_y J^T`` (K, 3, 3) of the features in ``slots``."""
         X, J = self.model.point_from_state(self.db.y[slots], self.db.R_ref[slots])
@@ -494,21 +543,17 @@ class Mapper:
         return X, 0.5 * (cov + cov.transpose(0, 2, 1))
 
     def _emitted_points(self, t_s: float, slots: np.ndarray) -> TerrainPoints:
-        """Converged features as terrain points. With the correlated navigation model the feature
-        covariance is relative to the estimate's frame; the point's covariance in the world adds
-        the height variance of the navigation error, ``(J_X P_x J_X^T)_zz`` with ``J_X = [I, -[X - p]x]``
-        (the point moves with the frame, as in eq. 17), so the map knows that the heights of one pass
-        share that error and fuses passes instead of flipping between them. Horizontally the
-        navigation error shifts a whole pass rigidly: spreading each point over the cells of that
-        shift would blur what is sharp in the map (a wall's edge), so it is not added there."""
+        """Converged features as terrain points, with the feature's own covariance ``J P_y J^T``.
+
+        With the correlated navigation model that covariance is relative to the estimate's frame,
+        and so is the map: the vehicle flies on the same estimate, so the error the navigation
+        shares with every point of a pass moves the vehicle and the map together and is not an error
+        of the map for the law (docs/mapper.md, "Point covariance"). Adding it (0.8 m of vertical
+        navigation error on every point of the simulated flights) tripled the points' height sigma
+        against their scatter in the frame, and the law's margin above each cell with it."""
         if len(slots) == 0:
             return TerrainPoints.empty(t_s)
         X, cov = self._points(slots)
-        if self.cfg.nav_attitude_correlation_s > 0 and self._emit_P_x is not None:
-            J = np.concatenate([np.broadcast_to(_I3, (len(X), 3, 3)), -skew(X - self._emit_p)], axis=2)
-            J_z = J[:, 2, :]  # (K, 6): height row
-            cov = cov.copy()
-            cov[:, 2, 2] += np.einsum("ki,ij,kj->k", J_z, self._emit_P_x, J_z)
         finite = np.isfinite(X).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
         return TerrainPoints(t_s, X[finite], cov[finite], self.db.ids[slots][finite].copy())
 

@@ -7,7 +7,8 @@ C or JavaScript subscriber needs nothing but the layout below::
     0      4    bytes    magic b"CTTL"
     4      2    uint16   format version (1)
     6      2    uint16   layer mask: bit0 height f32, bit1 variance f32, bit2 count u32,
-                         bit3 disagreement f32, bit4 pending height f32 (snapshots only);
+                         bit3 disagreement f32, bit4 pending height f32, bit5 ceiling f32,
+                         bit6 evidence weight f32, bit7 floor f32 (bits 3-7: snapshots only);
                          bits 0-2 always set
     8      4    int32    tx
     12     4    int32    ty
@@ -32,6 +33,7 @@ MAGIC = b"CTTL"
 VERSION = 1
 HEADER = struct.Struct("<4sHHiidHHI")  # 32 bytes
 LAYER_HEIGHT, LAYER_VARIANCE, LAYER_COUNT, LAYER_DISAGREEMENT, LAYER_PENDING = 1, 2, 4, 8, 16
+LAYER_CEILING, LAYER_WEIGHT, LAYER_FLOOR = 32, 64, 128
 # Layer bit -> (Tile attribute, little-endian dtype, native dtype), in payload order.
 LAYERS = (
     (LAYER_HEIGHT, "height", "<f4", np.float32),
@@ -39,9 +41,12 @@ LAYERS = (
     (LAYER_COUNT, "count", "<u4", np.uint32),
     (LAYER_DISAGREEMENT, "disagreement", "<f4", np.float32),
     (LAYER_PENDING, "pending", "<f4", np.float32),
+    (LAYER_CEILING, "ceiling", "<f4", np.float32),
+    (LAYER_WEIGHT, "weight", "<f4", np.float32),
+    (LAYER_FLOOR, "floor", "<f4", np.float32),
 )
 REQUIRED = LAYER_HEIGHT | LAYER_VARIANCE | LAYER_COUNT
-KNOWN = REQUIRED | LAYER_DISAGREEMENT | LAYER_PENDING
+KNOWN = REQUIRED | LAYER_DISAGREEMENT | LAYER_PENDING | LAYER_CEILING | LAYER_WEIGHT | LAYER_FLOOR
 
 
 def encoded_size(tile_cells: int, mask: int = REQUIRED) -> int:
@@ -50,8 +55,8 @@ def encoded_size(tile_cells: int, mask: int = REQUIRED) -> int:
 
 
 def encode_tile(tile: Tile, *, with_disagreement: bool = False) -> bytes:
-    """Encode ``tile``; the fusion-state layers (disagreement, and pending when the tile has it) are
-    written only when asked for (snapshots)."""
+    """Encode ``tile``; the internal layers (disagreement, and pending, ceiling, weight and floor when the
+    tile has them) are written only when asked for (snapshots)."""
     t = tile.tile_cells
     if t > 0xFFFF:
         raise ValueError(f"tile of {t} cells a side cannot be encoded (max 65535)")
@@ -60,6 +65,9 @@ def encode_tile(tile: Tile, *, with_disagreement: bool = False) -> bytes:
     mask = REQUIRED
     if with_disagreement:
         mask |= LAYER_DISAGREEMENT | (LAYER_PENDING if tile.pending is not None else 0)
+        mask |= LAYER_CEILING if tile.ceiling is not None else 0
+        mask |= LAYER_WEIGHT if tile.weight is not None else 0
+        mask |= LAYER_FLOOR if tile.floor is not None else 0
     payload = b"".join(
         np.ascontiguousarray(getattr(tile, name), dtype=le).tobytes()
         for bit, name, le, _ in LAYERS

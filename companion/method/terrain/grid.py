@@ -2,7 +2,9 @@
 
 Storage: one pool of tile layers ``(capacity, T, T)`` (height f32, variance f32, count u32, and
 the fusion state: disagreement f32 (evidence from below) and pending f32 (a higher height waiting
-for confirmation, NaN none); 20 bytes a cell) and a sorted array of packed tile keys, so every batched
+for confirmation, NaN none); the free space: ceiling f32 (the lowest height a line of sight crossed
+the cell at, +inf none), evidence weight f32 and floor f32 (the least the terrain reaches, -inf
+none); 32 bytes a cell) and a sorted array of packed tile keys, so every batched
 operation is one ``searchsorted`` plus fancy indexing, and memory follows the tiles that exist
 (the area observed), never a bounding box. Fusion rules: :mod:`companion.terrain.fusion`.
 """
@@ -16,7 +18,7 @@ from typing import Iterator
 import numpy as np
 
 from companion.config import TerrainConfig
-from companion.method.messages import TerrainPoints
+from companion.method.messages import FreeSpaceRays, TerrainFloors, TerrainPoints
 from companion.method.terrain import fusion
 from companion.method.terrain.tile import Tile
 
@@ -55,13 +57,32 @@ class InsertStats:
     cells_reset: int = 0
 
 
+@dataclass(frozen=True, slots=True)
+class CarveStats:
+    """Outcome of one :meth:`TerrainGrid.carve`: rays used, cells whose ceiling came down, cells a
+    ray passed under (contradicting their height), cells cleared (their height gone), pending
+    heights and floors dropped."""
+
+    rays: int = 0
+    cells_lowered: int = 0
+    cells_passed_under: int = 0
+    cells_cleared: int = 0
+    pending_dropped: int = 0
+    floors_dropped: int = 0
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class Corridor:
     """Cells whose centre lies within ``half_width`` of a horizontal segment, sorted along track.
 
     Every array is (K,): north_m, east_m (cell centre), along_m (projection on the direction from
     the origin; negative for cells beside or behind the origin), cross_m (distance to the
-    segment's line), height_m (NaN unknown), variance (inf unknown), count.
+    segment's line), height_m (NaN unknown), variance (inf unknown), count, ceiling_m (the lowest
+    height a line of sight crossed the cell at; inf none), height_variance (the variance of the
+    surface height the cell's evidence gives: its variance times its evidence weight where that is
+    below one point, since a point's share of a cell is uncertainty about where it lies, not about
+    how high; inf unknown), floor_m (the least the terrain in the cell reaches, from features not
+    yet converged; -inf none).
     """
 
     north_m: np.ndarray
@@ -71,6 +92,9 @@ class Corridor:
     height_m: np.ndarray
     variance: np.ndarray
     count: np.ndarray
+    ceiling_m: np.ndarray | None = None
+    height_variance: np.ndarray | None = None
+    floor_m: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.along_m)
@@ -104,6 +128,10 @@ class TerrainGrid:
         reset_evidence: float = 20.0,
         process_noise_m2: float = 1e-4,
         max_abs_coordinate_m: float = 1e6,
+        carve_start_m: float = 2.0,
+        carve_end_margin_m: float = 1.5,
+        carve_margin_m: float = 0.5,
+        carve_rays: float = 3.0,
     ) -> None:
         if not (np.isfinite(cell_size_m) and cell_size_m > 0):
             raise ValueError(f"cell_size_m must be positive and finite, got {cell_size_m}")
@@ -123,6 +151,10 @@ class TerrainGrid:
         self.reset_evidence = float(reset_evidence)
         self.process_noise_m2 = float(process_noise_m2)
         self.max_abs_coordinate_m = float(max_abs_coordinate_m)
+        self.carve_start_m = float(carve_start_m)
+        self.carve_end_margin_m = float(carve_end_margin_m)
+        self.carve_margin_m = float(carve_margin_m)
+        self.carve_rays = float(carve_rays)
         t = self.tile_cells
         self._cells_per_tile = t * t
         self._n_tiles = 0
@@ -150,6 +182,10 @@ class TerrainGrid:
             reset_evidence=cfg.reset_evidence,
             process_noise_m2=cfg.process_noise_m2,
             max_abs_coordinate_m=cfg.max_abs_coordinate_m,
+            carve_start_m=cfg.carve_start_m,
+            carve_end_margin_m=cfg.carve_end_margin_m,
+            carve_margin_m=cfg.carve_margin_m,
+            carve_rays=cfg.carve_rays,
         )
 
     # ---------------------------------------------------------------------------------- storage
@@ -161,14 +197,20 @@ class TerrainGrid:
         self._n = np.zeros((capacity, t, t), dtype=np.uint32)
         self._d = np.zeros((capacity, t, t), dtype=np.float32)  # evidence from below (points)
         self._p = np.full((capacity, t, t), np.nan, dtype=np.float32)  # pending higher height (m)
+        self._c = np.full((capacity, t, t), np.inf, dtype=np.float32)  # ceiling: free space above (m)
+        self._w = np.zeros((capacity, t, t), dtype=np.float32)  # evidence weight: points' shares agreeing
+        self._f = np.full((capacity, t, t), -np.inf, dtype=np.float32)  # floor: the least the terrain reaches (m)
+
+    def _layers(self) -> tuple[np.ndarray, ...]:
+        return (self._h, self._v, self._n, self._d, self._p, self._c, self._w, self._f)
 
     def _grow(self, needed: int) -> None:
         cap = len(self._h)
         if needed <= cap:
             return
-        old = (self._h, self._v, self._n, self._d, self._p)
+        old = self._layers()
         self._alloc(max(needed, cap + cap // 2, 16))
-        for new, o in zip((self._h, self._v, self._n, self._d, self._p), old):
+        for new, o in zip(self._layers(), old):
             new[: self._n_tiles] = o[: self._n_tiles]
 
     def _slots_of(self, keys: np.ndarray) -> np.ndarray:
@@ -207,18 +249,32 @@ class TerrainGrid:
         tx, ty = np.floor_divide(ci, t), np.floor_divide(cj, t)
         return pack_key(tx, ty), (ci - tx * t) * t + (cj - ty * t)
 
-    def _gather(self, ci: np.ndarray, cj: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(height, variance, count) of cells by global index; NaN / inf / 0 where no tile."""
+    def _gather(self, ci: np.ndarray, cj: np.ndarray, bounds: bool = False) -> tuple[np.ndarray, ...]:
+        """(height, variance, count) of cells by global index; NaN / inf / 0 where no tile. With
+        ``bounds`` also (ceiling, floor, evidence weight): inf / -inf / 0 where no tile."""
         keys, local = self._cells(ci, cj)
         slots = self._slots_of(keys)
         have = slots >= 0
         flat = np.where(have, slots * self._cells_per_tile + local, 0)
-        h = np.where(have, self._h.reshape(-1)[flat] if self._n_tiles else np.nan, np.nan).astype(np.float64)
-        v = np.where(have, self._v.reshape(-1)[flat] if self._n_tiles else np.inf, np.inf).astype(np.float64)
-        n = np.where(have, self._n.reshape(-1)[flat] if self._n_tiles else 0, 0).astype(np.int64)
-        return h, v, n
+        layers = [(self._h, np.nan, np.float64), (self._v, np.inf, np.float64), (self._n, 0, np.int64)]
+        if bounds:
+            layers += [(self._c, np.inf, np.float64), (self._f, -np.inf, np.float64), (self._w, 0.0, np.float64)]
+        if not self._n_tiles:
+            return tuple(np.full(len(ci), empty, dtype=dt) for _, empty, dt in layers)
+        return tuple(np.where(have, layer.reshape(-1)[flat], empty).astype(dt) for layer, empty, dt in layers)
 
     # ----------------------------------------------------------------------------------- fusion
+
+    def add_evidence(self, points: TerrainPoints, free_space: FreeSpaceRays | None = None,
+                     floors: TerrainFloors | None = None) -> InsertStats:
+        """One frame's evidence, in order: the free space its lines of sight crossed
+        (:meth:`carve`), the floors of its features not yet converged (:meth:`raise_floors`), then
+        its converged points (:meth:`insert`, whose statistics are returned)."""
+        if free_space is not None and len(free_space):
+            self.carve(free_space)
+        if floors is not None and len(floors):
+            self.raise_floors(floors)
+        return self.insert(points) if len(points) else InsertStats()
 
     def insert(self, points: TerrainPoints) -> InsertStats:
         """Fuse a batch of converged points (docs/terrain.md, "Fusion"): each cell keeps its top
@@ -289,6 +345,8 @@ class TerrainGrid:
         info = np.bincount(cell, weights=agree_r, minlength=k)
         info_h = np.bincount(cell, weights=agree_r * hm, minlength=k)
         n_agree = np.bincount(cell, weights=agree, minlength=k)
+        w_agree = np.bincount(cell, weights=agree * w, minlength=k)
+        w_new = self._w.reshape(-1)[cell_flat].astype(np.float64)
         h_new = self._h.reshape(-1)[cell_flat].astype(np.float64)
         v_new = self._v.reshape(-1)[cell_flat].astype(np.float64)
         n_new = self._n.reshape(-1)[cell_flat].astype(np.float64)
@@ -297,20 +355,22 @@ class TerrainGrid:
         update = n_agree > 0
         reset = np.zeros(k, dtype=bool)
         if below.any():
-            d_new = fusion.disagreement_update(d_new, np.bincount(cell, weights=agree * w, minlength=k),
-                                               np.bincount(cell, weights=below * w, minlength=k))
+            below_w = np.bincount(cell, weights=below * w, minlength=k)
+            d_new = fusion.disagreement_update(d_new, w_agree, below_w)
             reset = d_new >= self.reset_evidence
             if reset.any():  # the lower heights become the cell's evidence, on an unknown prior
                 info[reset] = np.bincount(cell, weights=below_r, minlength=k)[reset]
                 info_h[reset] = np.bincount(cell, weights=below_r * hm, minlength=k)[reset]
                 n_agree[reset] = np.bincount(cell, weights=below, minlength=k)[reset]
-                v_new[reset], n_new[reset], d_new[reset], pending[reset] = np.inf, 0.0, 0.0, np.nan
+                w_agree[reset] = below_w[reset]
+                v_new[reset], n_new[reset], d_new[reset], pending[reset], w_new[reset] = np.inf, 0.0, 0.0, np.nan, 0.0
                 update |= reset
         elif update.any():
             d_new[update] = 0.0
         h1, v1 = fusion.fuse_information(h_new[update], v_new[update], info[update], info_h[update], self.process_noise_m2)
         h_new[update], v_new[update] = h1, v1
         n_new[update] += n_agree[update]
+        w_new[update] += w_agree[update]
 
         # Pairs above: a higher surface, taken once confirmed; else it waits as the pending height.
         raised = np.zeros(k, dtype=bool)
@@ -319,10 +379,17 @@ class TerrainGrid:
             h1, r1, h2, r2 = fusion.highest_two(cell[up], hm[up], r[up], k)
             raised, h_r, v_r, pending = fusion.confirm_raise(h1, r1, h2, r2, pending, self.gate_sigma)
             h_new[raised], v_new[raised], n_new[raised], d_new[raised] = h_r[raised], v_r[raised], 2.0, 0.0
+            w_new[raised] = 1.0  # a top surface: its pair's variance stands, as one point's
+            # A confirmed surface above the free space seen before is newer than it: the old lines
+            # of sight no longer bound the cell (docs/terrain.md, "Free space").
+            above_ceiling = raised & (h_new > self._c.reshape(-1)[cell_flat])
+            if above_ceiling.any():
+                self._c.reshape(-1)[cell_flat[above_ceiling]] = np.inf
 
         self._h.reshape(-1)[cell_flat] = h_new
         self._v.reshape(-1)[cell_flat] = v_new
         self._n.reshape(-1)[cell_flat] = np.minimum(n_new, _COUNT_MAX)
+        self._w.reshape(-1)[cell_flat] = w_new
         self._d.reshape(-1)[cell_flat] = d_new
         self._p.reshape(-1)[cell_flat] = pending
         changed = update | raised
@@ -345,6 +412,115 @@ class TerrainGrid:
             cells_raised=int(np.count_nonzero(raised)),
             cells_reset=int(np.count_nonzero(reset & ~raised)),
         )
+
+    def carve(self, rays: FreeSpaceRays) -> CarveStats:
+        """Visibility carving (docs/terrain.md, "Free space"): every segment of ``rays`` crossed
+        the columns of the cells below it at the segment's height there, so the terrain in each
+        is lower. Per cell the ceiling keeps the lowest such height.
+
+        The segment is sampled every half cell, horizontally, from ``carve_start_m`` off the camera
+        (nearer, a line of sight at the camera's own height bounds nothing) to
+        ``carve_end_margin_m`` short of its end (a feature's own cell, and a wall whose face it
+        lies on, are never carved). A ray passing more than ``gate_sigma`` sigma +
+        ``carve_margin_m`` under a cell's height contradicts it: each frame that does counts
+        ``reset_evidence / carve_rays`` of disagreement (the evidence-from-below counter, which any
+        agreeing point clears), and a cell that reaches ``reset_evidence`` loses its height: a
+        phantom does not survive ``carve_rays`` looks through it. A pending higher height a ray
+        passed under is dropped, and so is a floor (:meth:`raise_floors`). Invalid rays (non-finite, beyond ``max_abs_coordinate_m``) are
+        skipped."""
+        o = np.asarray(rays.origin_ned_m, dtype=np.float64).reshape(3)
+        ends = np.asarray(rays.ends_ned_m, dtype=np.float64).reshape(-1, 3)
+        lim = self.max_abs_coordinate_m
+        if len(ends) == 0 or not (np.isfinite(o).all() and np.abs(o).max() <= lim):
+            return CarveStats()
+        good = np.isfinite(ends).all(axis=1) & (np.abs(ends) <= lim).all(axis=1)
+        ends = ends[good]
+        d_ne = ends[:, :2] - o[:2]
+        length = np.sqrt((d_ne * d_ne).sum(axis=1))
+        reach = length - self.carve_end_margin_m
+        use = reach > 0
+        if not use.any():
+            return CarveStats(rays=int(len(ends)))
+        ends, d_ne, length, reach = ends[use], d_ne[use], length[use], reach[use]
+        use = reach > self.carve_start_m
+        if not use.all():
+            ends, d_ne, length, reach = ends[use], d_ne[use], length[use], reach[use]
+            if not len(ends):
+                return CarveStats(rays=int(np.count_nonzero(good)))
+        step = 0.5 * self.cell_size_m
+        start = self.carve_start_m
+        n_s = int(np.ceil((reach.max() - start) / step)) + 1
+        s = np.minimum(start + step * np.arange(n_s)[None, :], reach[:, None])  # (K, S) horizontal distance
+        frac = s / length[:, None]
+        north = o[0] + frac * d_ne[:, 0, None]
+        east = o[1] + frac * d_ne[:, 1, None]
+        alt = -o[2] + frac * (o[2] - ends[:, 2])[:, None]
+        ci, cj = self.cell_index(north.ravel(), east.ravel())
+        keys, local = self._cells(ci, cj)
+        uk, where = np.unique(keys, return_inverse=True)
+        slots = self._ensure_tiles(uk)[where]
+        flat = slots * self._cells_per_tile + local
+        cells, inv = np.unique(flat, return_inverse=True)
+        low = np.full(len(cells), np.inf)
+        np.minimum.at(low, inv, alt.ravel())
+        c_old = self._c.reshape(-1)[cells]
+        lowered = low < c_old
+        self._c.reshape(-1)[cells[lowered]] = low[lowered]
+
+        h = self._h.reshape(-1)[cells].astype(np.float64)
+        v = self._v.reshape(-1)[cells].astype(np.float64)
+        p = self._p.reshape(-1)[cells].astype(np.float64)
+        with np.errstate(invalid="ignore"):
+            under = (self._n.reshape(-1)[cells] > 0) & (low < h - self.gate_sigma * np.sqrt(v) - self.carve_margin_m)
+            drop_pending = low < p
+        if drop_pending.any():
+            self._p.reshape(-1)[cells[drop_pending]] = np.nan
+        drop_floor = low < self._f.reshape(-1)[cells]
+        if drop_floor.any():  # a line of sight passed below the least the terrain was to reach
+            self._f.reshape(-1)[cells[drop_floor]] = -np.inf
+        cleared = np.zeros(0, dtype=np.int64)
+        if under.any():
+            u = cells[under]
+            d = self._d.reshape(-1)[u] + self.reset_evidence / self.carve_rays
+            gone = d >= self.reset_evidence
+            d[gone] = 0.0
+            self._d.reshape(-1)[u] = d
+            cleared = u[gone]
+            if len(cleared):
+                self._h.reshape(-1)[cleared] = np.nan
+                self._v.reshape(-1)[cleared] = np.inf
+                self._n.reshape(-1)[cleared] = 0
+                self._w.reshape(-1)[cleared] = 0.0
+                self._p.reshape(-1)[cleared] = np.nan
+                self._f.reshape(-1)[cleared] = -np.inf
+                self._dirty.update(self._slot_key[int(k)] for k in np.unique(cleared // self._cells_per_tile).tolist())
+        return CarveStats(rays=int(len(ends)), cells_lowered=int(np.count_nonzero(lowered)),
+                          cells_passed_under=int(np.count_nonzero(under)), cells_cleared=int(len(cleared)),
+                          pending_dropped=int(np.count_nonzero(drop_pending)), floors_dropped=int(np.count_nonzero(drop_floor)))
+
+    def raise_floors(self, floors: TerrainFloors) -> int:
+        """Lower bounds on the terrain's height (docs/terrain.md, "Floors"): the floor of the cell
+        of each row of ``floors`` becomes at least that row's height. A floor is not evidence of
+        where the surface is (the map's height and variance are untouched, nor is it published):
+        it is the least the terrain there reaches, which the avoidance law keeps clear of until the
+        cell's own evidence says more. A line of sight passing below it drops it (:meth:`carve`).
+        Invalid rows (non-finite, beyond ``max_abs_coordinate_m``) are skipped. Returns the number
+        of cells whose floor rose."""
+        pts = np.asarray(floors.positions_ned_m, dtype=np.float64).reshape(-1, 3)
+        good = np.isfinite(pts).all(axis=1) & (np.abs(pts) <= self.max_abs_coordinate_m).all(axis=1)
+        pts = pts[good]
+        if len(pts) == 0:
+            return 0
+        ci, cj = self.cell_index(pts[:, 0], pts[:, 1])
+        keys, local = self._cells(ci, cj)
+        uk, where = np.unique(keys, return_inverse=True)
+        flat = self._ensure_tiles(uk)[where] * self._cells_per_tile + local
+        cells, inv = np.unique(flat, return_inverse=True)
+        high = np.full(len(cells), -np.inf)
+        np.maximum.at(high, inv, -pts[:, 2])
+        raised = high > self._f.reshape(-1)[cells]
+        self._f.reshape(-1)[cells[raised]] = high[raised]
+        return int(np.count_nonzero(raised))
 
     # ---------------------------------------------------------------------------------- queries
 
@@ -415,8 +591,8 @@ class TerrainGrid:
         keep = keep[np.argsort(along[keep], kind="stable")]
         ci, cj, cn, ce, along = ci[keep], cj[keep], cn[keep], ce[keep], along[keep]
         cross = np.abs((cn - o[0]) * d[1] - (ce - o[1]) * d[0])
-        h, v, cnt = self._gather(ci, cj)
-        return Corridor(cn, ce, along, cross, h, v, cnt)
+        h, v, cnt, ceiling, floor, weight = self._gather(ci, cj, bounds=True)
+        return Corridor(cn, ce, along, cross, h, v, cnt, ceiling, v * np.where(weight > 0, np.minimum(weight, 1.0), 1.0), floor)
 
     def ray_range(self, origin_ned: np.ndarray, rays_ned: np.ndarray, max_range_m: float) -> np.ndarray:
         """(N,) range (m) along each unit ray from ``origin_ned`` (3,) to the first known terrain, NaN
@@ -497,7 +673,8 @@ class TerrainGrid:
         return bool(self._slots_of(pack_key(np.array([key[0]]), np.array([key[1]])))[0] >= 0)
 
     def tile(self, key: tuple[int, int], *, with_disagreement: bool = False) -> Tile:
-        """A copy of one tile's layers; KeyError if the tile does not exist."""
+        """A copy of one tile's layers (with the internal ones, disagreement, pending and ceiling,
+        when asked); KeyError if the tile does not exist."""
         tx, ty = int(key[0]), int(key[1])
         slot = int(self._slots_of(pack_key(np.array([tx]), np.array([ty])))[0])
         if slot < 0:
@@ -506,6 +683,9 @@ class TerrainGrid:
             tx, ty, self._h[slot].copy(), self._v[slot].copy(), self._n[slot].copy(), self.cell_size_m,
             self._d[slot].copy() if with_disagreement else None,
             self._p[slot].copy() if with_disagreement else None,
+            self._c[slot].copy() if with_disagreement else None,
+            self._w[slot].copy() if with_disagreement else None,
+            self._f[slot].copy() if with_disagreement else None,
         )
 
     def tiles(self, *, with_disagreement: bool = False) -> Iterator[Tile]:
@@ -523,6 +703,9 @@ class TerrainGrid:
         self._h[slot], self._v[slot], self._n[slot] = tile.height, tile.variance, tile.count
         self._d[slot] = 0.0 if tile.disagreement is None else tile.disagreement
         self._p[slot] = np.nan if tile.pending is None else tile.pending
+        self._c[slot] = np.inf if tile.ceiling is None else tile.ceiling
+        self._w[slot] = np.minimum(tile.count, 1).astype(np.float32) if tile.weight is None else tile.weight
+        self._f[slot] = -np.inf if tile.floor is None else tile.floor
         known = tile.count > 0
         if known.any():
             hk = tile.height[known]
@@ -532,7 +715,7 @@ class TerrainGrid:
 
     def memory_bytes(self) -> int:
         """Bytes held by the map: the tile pool as allocated plus the key index."""
-        pool = self._h.nbytes + self._v.nbytes + self._n.nbytes + self._d.nbytes + self._p.nbytes
+        pool = sum(layer.nbytes for layer in self._layers())
         return int(pool + self._keys.nbytes + self._key_slots.nbytes + 64 * len(self._slot_key))
 
     def observed_area_m2(self) -> float:

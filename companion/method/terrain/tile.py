@@ -25,6 +25,11 @@ class Tile:
     pending: optional (T, T) float32, a higher height seen once and waiting for confirmation (m, NaN
         none). Both are internal fusion state (docs/terrain.md, "Fusion"), carried by snapshots so
         a restart resumes exactly; never published.
+    ceiling: optional (T, T) float32, the lowest height a line of sight crossed the cell at (m, +inf
+        none; docs/terrain.md, "Free space"); weight: optional (T, T) float32, the points' shares
+        of the cell that agree with its height (the evidence in points); floor: optional (T, T)
+        float32, the least the terrain in the cell reaches (m, -inf none; docs/terrain.md,
+        "Floors"). All three carried by snapshots, never published.
     """
 
     tx: int
@@ -35,12 +40,15 @@ class Tile:
     cell_size_m: float = 1.0
     disagreement: np.ndarray | None = None
     pending: np.ndarray | None = None
+    ceiling: np.ndarray | None = None
+    weight: np.ndarray | None = None
+    floor: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = self.height.shape
         if len(t) != 2 or t[0] != t[1] or t[0] < 1:
             raise ValueError(f"tile layers must be square (T, T), got height {t}")
-        optional = tuple(n for n in ("disagreement", "pending") if getattr(self, n) is not None)
+        optional = tuple(n for n in ("disagreement", "pending", "ceiling", "weight", "floor") if getattr(self, n) is not None)
         for name in ("variance", "count") + optional:
             if getattr(self, name).shape != t:
                 raise ValueError(f"tile layer '{name}' has shape {getattr(self, name).shape}, expected {t}")
@@ -77,7 +85,7 @@ class Tile:
         layers = ("height", "variance", "count")
         if (self.tx, self.ty, self.cell_size_m) != (other.tx, other.ty, other.cell_size_m):
             return False
-        for name in ("disagreement", "pending"):
+        for name in ("disagreement", "pending", "ceiling", "weight", "floor"):
             if (getattr(self, name) is None) != (getattr(other, name) is None):
                 return False
             if getattr(self, name) is not None:

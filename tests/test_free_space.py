@@ -1,0 +1,234 @@
+"""Bounds on the terrain from what the camera saw: free space (ceilings, carving), floors from
+features not yet converged, and how the law reads them (docs/terrain.md "Free space" and
+"Floors", docs/mapper.md "Bounds of an unconverged feature", docs/avoidance.md "What a cell may
+hold" and "Unmapped cells")."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.config import AvoidanceConfig, MapperConfig
+from companion.method.avoidance import PullUpLaw, law_heights
+from companion.method.geometry import camera_from_config
+from companion.config import CameraConfig
+from companion.method.mapper import Mapper
+from companion.method.mapper import cartesian, inverse_depth
+from companion.method.messages import FreeSpaceRays, TerrainFloors, TerrainPoints
+from companion.method.terrain import TerrainGrid
+from companion.method.terrain.codec import decode_tile, encode_tile
+from companion.method.terrain.grid import Corridor
+
+
+def one_ray(end, origin=(0.0, 0.0, -15.0)):
+    return FreeSpaceRays(0.0, np.array(origin, float), np.array([end], float))
+
+
+def bounds(grid, north, east=0.5):
+    """(ceiling, floor) of the cell holding (north, east)."""
+    ci, cj = grid.cell_index(np.array([north]), np.array([east]))
+    key = (int(ci[0]) // grid.tile_cells, int(cj[0]) // grid.tile_cells)
+    t = grid.tile(key, with_disagreement=True)
+    i, j = int(ci[0]) % grid.tile_cells, int(cj[0]) % grid.tile_cells
+    return float(t.ceiling[i, j]), float(t.floor[i, j])
+
+
+def test_a_line_of_sight_bounds_the_cells_below_it_from_above():
+    """Camera at 15 m, a ground feature 20 m north: over a cell the line of sight passes at
+    15 (1 - s / 20) for the samples s in that cell; the ceiling is the lowest of them. Cells nearer
+    than carve_start_m or within carve_end_margin_m of the end are not touched."""
+    grid = TerrainGrid(carve_start_m=2.0, carve_end_margin_m=1.5)
+    stats = grid.carve(one_ray((20.0, 0.2, 0.0)))
+    assert stats.rays == 1 and stats.cells_lowered > 10
+    length = math.hypot(20.0, 0.2)
+    samples = np.arange(2.0, length - 1.5 + 1e-9, 0.5)  # horizontal distances sampled, every half cell
+    for north in (3.5, 10.5, 17.5):
+        inside = samples[np.floor(samples * 20.0 / length) == math.floor(north)]
+        ceiling, floor = bounds(grid, north, 0.2)
+        assert ceiling == pytest.approx(15.0 * (1 - inside.max() / length), abs=1e-4)
+        assert floor == -np.inf
+    assert bounds(grid, 0.5, 0.2)[0] == np.inf  # nearer than carve_start_m
+    assert bounds(grid, 19.5, 0.2)[0] == np.inf  # the feature's own cell, within the end margin
+    # A second, lower line of sight lowers the ceiling; a higher one leaves it.
+    before = bounds(grid, 10.5, 0.2)[0]
+    grid.carve(one_ray((12.0, 0.2, 0.0)))
+    assert bounds(grid, 10.5, 0.2)[0] < before
+    low = bounds(grid, 10.5, 0.2)[0]
+    grid.carve(one_ray((40.0, 0.2, 0.0)))
+    assert bounds(grid, 10.5, 0.2)[0] == low
+
+
+def test_a_phantom_does_not_survive_carve_rays_looks_through_it():
+    """A cell mapped at 8 m where lines of sight pass at ~3 m: each frame through it counts
+    reset_evidence / carve_rays of disagreement; the third clears it. A point agreeing with the
+    cell in between starts the count again."""
+    grid = TerrainGrid(carve_rays=3.0, gate_min_count=10**6)
+    phantom = TerrainPoints(0.0, np.array([[16.5, 0.5, -8.0]]), np.eye(3)[None] * 0.01, np.array([1]))
+    grid.insert(phantom)
+    ray = one_ray((20.0, 0.5, 0.0))  # passes over north 16.5 at ~2.6 m
+    grid.carve(ray)
+    grid.carve(ray)
+    assert grid.height_at(np.array([16.5]), np.array([0.5]))[2][0] == 1  # still there after two looks
+    grid.insert(phantom)  # the cell seen again: agreeing evidence
+    grid.carve(ray)
+    grid.carve(ray)
+    assert grid.height_at(np.array([16.5]), np.array([0.5]))[2][0] > 0
+    stats = grid.carve(ray)
+    h, _, n = grid.height_at(np.array([16.5]), np.array([0.5]))
+    assert stats.cells_cleared == 1 and n[0] == 0 and np.isnan(h[0])
+
+
+def test_floors_keep_the_highest_bound_and_a_line_of_sight_below_drops_them():
+    grid = TerrainGrid()
+    assert grid.raise_floors(TerrainFloors(0.0, np.array([[10.5, 0.5, -4.0], [10.6, 0.4, -6.0]]))) == 1
+    assert bounds(grid, 10.5)[1] == pytest.approx(6.0)
+    assert grid.raise_floors(TerrainFloors(0.0, np.array([[10.5, 0.5, -5.0]]))) == 0  # lower: no change
+    assert grid.raise_floors(TerrainFloors(0.0, np.array([[np.nan, 0.5, -5.0], [2e6, 0.0, 0.0]]))) == 0  # invalid rows
+    stats = grid.carve(one_ray((14.0, 0.5, 0.0)))  # passes over north 10.5 at ~3.2 m, below the floor
+    assert stats.floors_dropped == 1 and bounds(grid, 10.5)[1] == -np.inf
+    # A floor is not evidence of where the surface is: the map's height layer is untouched.
+    assert grid.height_at(np.array([10.5]), np.array([0.5]))[2][0] == 0
+
+
+def test_snapshots_carry_ceiling_weight_and_floor_and_the_wire_does_not():
+    grid = TerrainGrid()
+    grid.insert(TerrainPoints(0.0, np.array([[5.5, 0.5, -1.0]]), np.eye(3)[None] * 0.01, np.array([1])))
+    grid.carve(one_ray((20.0, 0.5, 0.0)))
+    grid.raise_floors(TerrainFloors(0.0, np.array([[12.5, 0.5, -2.0]])))
+    for key in grid.keys():
+        full = grid.tile(key, with_disagreement=True)
+        back = decode_tile(encode_tile(full, with_disagreement=True))
+        assert back.same_as(full) and back.floor is not None and back.ceiling is not None and back.weight is not None
+        wire = decode_tile(encode_tile(full))
+        assert wire.ceiling is None and wire.floor is None and wire.weight is None
+        restored = TerrainGrid()
+        restored.put_tile(back)
+        assert restored.tile(key, with_disagreement=True).same_as(full)
+
+
+def corridor(height, variance, count, ceiling, floor):
+    k = len(height)
+    along = np.arange(k, dtype=float)
+    return along, Corridor(np.zeros(k), along, along, np.zeros(k), np.asarray(height, float), np.asarray(variance, float),
+                           np.asarray(count), np.asarray(ceiling, float), np.asarray(variance, float), np.asarray(floor, float))
+
+
+def test_what_a_cell_may_hold():
+    """max(h, min(h + k sigma, ceiling)) for a mapped cell; an unmapped one takes its neighbours'
+    (within fill) no higher than its own ceiling; every cell at least its floor."""
+    inf = np.inf
+    along, c = corridor(
+        height=[8.0, 8.0, 8.0, np.nan, np.nan, 8.0, np.nan],
+        variance=[1.0, 1.0, 1.0, inf, inf, 1.0, inf],
+        count=[3, 3, 3, 0, 0, 3, 0],
+        ceiling=[inf, 9.0, 7.0, 5.0, inf, inf, inf],
+        floor=[-inf, -inf, -inf, -inf, -inf, 12.0, -inf],
+    )
+    got = law_heights(along, c, 2.0, 1.0, 1.0, False)
+    assert got[0] == pytest.approx(10.0)  # h + 2 sigma
+    assert got[1] == pytest.approx(9.0)   # capped by the free space seen above it
+    assert got[2] == pytest.approx(8.0)   # never below its own estimate
+    assert got[3] == pytest.approx(5.0)   # a gap stands in at its neighbour's 10 m, capped by its ceiling
+    assert got[4] == pytest.approx(10.0)  # a gap: the neighbour's estimate + 2 sigma (its floor is its own)
+    assert got[5] == pytest.approx(12.0)  # the floor lifts the cell
+    assert got[6] == pytest.approx(10.0)
+    # Alone, an unmapped cell with a floor counts at it; with nothing, it is NaN (not ground at zero).
+    along, c = corridor([np.nan, np.nan], [inf, inf], [0, 0], [inf, inf], [6.0, -inf])
+    got = law_heights(along, c, 2.0, 0.0, 1.0, False)
+    assert got[0] == pytest.approx(6.0) and np.isnan(got[1])
+
+
+CFG = AvoidanceConfig(clearance_m=10.0, accel_mps2=1.0, miss_distance_m=3.0, lookahead_m=80.0, height_margin_sigma=0.0,
+                      max_climb_mps=3.0, max_descent_mps=2.0, nominal_alt_m=10.0)
+
+
+def test_a_floor_ahead_makes_the_law_climb_before_any_point_converged():
+    grid = TerrainGrid()
+    law = PullUpLaw(CFG)
+    assert law.command([0.0, 0.5, -10.0], [5.0, 0.0, 0.0], grid).climb_rate_mps == pytest.approx(0.0)
+    grid.raise_floors(TerrainFloors(0.0, np.array([[25.5, 0.5, -6.0]])))
+    cmd = law.command([0.0, 0.5, -10.0], [5.0, 0.0, 0.0], grid)
+    assert cmd.engaged and cmd.limiting_height_m == pytest.approx(6.0) and cmd.climb_rate_mps > 0
+
+
+def test_the_law_looks_along_the_route_not_the_drift():
+    """The vehicle flies north-east (turning) while its route leads north: the obstacle north counts,
+    at the speed over ground along the route (3 m/s)."""
+    grid = TerrainGrid()
+    grid.raise_floors(TerrainFloors(0.0, np.array([[20.5, 0.5, -8.0]])))
+    law = PullUpLaw(CFG)
+    drift = law.command([0.0, 0.5, -10.0], [3.0, 3.0, 0.0], grid)
+    along_route = law.command([0.0, 0.5, -10.0], [3.0, 3.0, 0.0], grid, direction_ne=[1.0, 0.0])
+    assert not drift.engaged and along_route.engaged
+
+
+def test_descent_over_ground_seen_only_through_free_space_stops_above_its_ceiling():
+    """After a plain roof the vehicle is 9 m above its nominal altitude over unmapped ground. With
+    nothing seen below it holds; with lines of sight below (ceilings at most 3 m) it descends, to no
+    lower than the highest ceiling + the clearance."""
+    law = PullUpLaw(CFG)
+    grid = TerrainGrid()
+    high = law.command([50.0, 0.5, -19.0], [5.0, 0.0, 0.0], grid)
+    assert high.holding_over_unknown and high.climb_rate_mps == 0.0
+    n, e = np.meshgrid(np.arange(30.0, 60.0) + 0.5, np.arange(-6.0, 7.0) + 0.5, indexing="ij")
+    ends = np.column_stack([n.ravel() + 1.6, e.ravel(), np.zeros(n.size)])
+    for dz in (-1.0, -2.0, -3.0):  # lines of sight from 1, 2, 3 m above each cell: the ceilings come down to ~ that
+        for o_n in np.arange(20.0, 60.0, 5.0):
+            grid.carve(FreeSpaceRays(0.0, np.array([o_n, 0.0, dz]), ends[ends[:, 0] > o_n + 4.0]))
+    cmd = law.command([50.0, 0.5, -19.0], [5.0, 0.0, 0.0], grid)
+    assert not cmd.holding_over_unknown and cmd.climb_rate_mps < 0.0
+    from companion.method.avoidance import ground_below
+    mapped, seen, top = ground_below(grid, np.array([50.0, 0.5]), 3.0 + math.sqrt(0.5), np.array([1.0, 0.0]))
+    assert mapped == 0.0 and seen > 0.5 and 0.0 < top <= 3.0
+    at_bound = law.command([50.0, 0.5, -(top + CFG.clearance_m)], [5.0, 0.0, 0.0], grid)
+    assert at_bound.climb_rate_mps >= -1e-9
+
+
+@pytest.mark.parametrize("model", [inverse_depth, cartesian])
+def test_point_at_sigma_moves_along_the_line_of_sight(model):
+    """Inverse depth: the anchor ray at rho + k sigma_rho (so nearer for k > 0, farther for k < 0,
+    at infinity when rho - |k| sigma_rho <= 0). Cartesian: X -+ k sigma_u along the ray from the
+    origin."""
+    R_ref = np.broadcast_to(inverse_depth.reference_rotation(np.eye(3)), (1, 3, 3)).copy()
+    if model is inverse_depth:
+        y = np.array([[1.0, 2.0, -15.0, 0.3, -0.2, 1 / 20.0]])
+        P = np.zeros((1, 6, 6))
+        P[0, 5, 5] = (0.01) ** 2
+        X, _ = model.point_from_state(y, R_ref)
+        m = inverse_depth.world_direction(y, R_ref)[0]
+        for k, rho in ((2.0, 0.07), (-2.0, 0.03)):
+            got = model.point_at_sigma(y, P, R_ref, y[:, :3], k)[0]
+            assert got == pytest.approx(y[0, :3] + m / rho)
+        assert np.isnan(model.point_at_sigma(y, P, R_ref, y[:, :3], -6.0)).all()  # 0.05 - 0.06 < 0: infinity
+    else:
+        origin = np.array([[0.0, 0.0, -15.0]])
+        y = np.array([[12.0, 0.0, 1.0]])
+        u = (y[0] - origin[0]) / np.linalg.norm(y[0] - origin[0])
+        P = np.eye(3)[None] * 0.25
+        for k in (2.0, -2.0):
+            got = model.point_at_sigma(y, P, R_ref, origin, k)[0]
+            assert got == pytest.approx(y[0] - k * 0.5 * u)
+
+
+def test_the_mapper_floors_a_feature_at_the_lower_end_of_its_depth_bound():
+    """A feature 20 m down a 45 deg line of sight with a 1.5 m depth sigma: its floor is the point
+    2 sigma farther, whose height is lower by about 2 x 1.5 x sin 45 deg."""
+    cfg = MapperConfig()
+    camera, mount = camera_from_config(CameraConfig())
+    mapper = Mapper(cfg, camera, mount)
+    d = 20.0
+    m_world = np.array([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4)])  # NED: north and down
+    R_ref = np.broadcast_to(np.eye(3), (1, 3, 3)).copy()
+    psi, theta = inverse_depth.angles_from_vector(m_world[None])
+    y = np.array([[0.0, 0.0, -15.0, psi[0], theta[0], 1.0 / d]])
+    sigma_rho = 1.5 / d**2  # first order: sigma_d = sigma_rho / rho^2
+    P = np.zeros((1, 6, 6))
+    P[0, 5, 5] = sigma_rho**2
+    floors = mapper._floors(1.0, y, P, R_ref, y[:, :3])
+    far = 1.0 / (1.0 / d - cfg.floor_sigma * sigma_rho)
+    assert len(floors) == 1
+    assert -floors.positions_ned_m[0, 2] == pytest.approx(15.0 - far * np.sin(np.pi / 4))
+    assert -floors.positions_ned_m[0, 2] < 15.0 - d * np.sin(np.pi / 4)  # below the estimate
+    assert floors.positions_ned_m[0, :2] == pytest.approx([d * np.cos(np.pi / 4), 0.0])  # at the estimate
