@@ -242,6 +242,8 @@ MODEL_FUNCTIONS = [
     ("init: initialise features (eqs. 13-17)", "initialise_features"),
     ("converge: relative depth sigma and depth", "relative_depth_sigma"),
     ("converge: relative depth sigma and depth", "depth_from_origin"),
+    ("bounds: free space and floors", "point"),
+    ("bounds: free space and floors", "point_at_sigma"),
 ]
 # Called by Mapper.step outside the measurement update ``Mapper._step_checked`` (with the detector).
 OUTSIDE_MEASUREMENTS = ("check_nav",)

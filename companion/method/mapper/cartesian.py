@@ -127,6 +127,11 @@ def point_from_state(y: np.ndarray, R_ref: np.ndarray) -> tuple[np.ndarray, np.n
     return y.copy(), np.broadcast_to(np.eye(3), (len(y), 3, 3)).copy()
 
 
+def point(y: np.ndarray, R_ref: np.ndarray) -> np.ndarray:
+    """The state is the point: ``X`` (N, 3)."""
+    return np.array(y, dtype=float)
+
+
 def depth_from_origin(y: np.ndarray, R_ref: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """Distance (N,) from the camera centre at initialisation ``origin`` (N, 3) to the point."""
     return np.linalg.norm(np.asarray(y, dtype=float) - origin, axis=1)

@@ -304,6 +304,16 @@ def point_from_state(y: np.ndarray, R_ref: np.ndarray) -> tuple[np.ndarray, np.n
     return X, J
 
 
+def point(y: np.ndarray, R_ref: np.ndarray) -> np.ndarray:
+    """Feature position ``X = a + m_world / rho`` (N, 3), as :func:`point_from_state` without its
+    Jacobian. NaN where ``rho <= 0``."""
+    y = np.asarray(y, dtype=float)
+    rho = y[:, RHO]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(rho > 0, 1.0 / rho, np.nan)
+    return y[:, ANCHOR] + world_direction(y, R_ref) * inv[:, None]
+
+
 def depth_from_origin(y: np.ndarray, R_ref: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """Depth (N,) from the anchor, ``1 / rho`` (``inf`` where ``rho <= 0``); ``origin`` unused."""
     rho = np.asarray(y, dtype=float)[:, RHO]

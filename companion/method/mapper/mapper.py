@@ -511,7 +511,7 @@ class Mapper:
         if k <= 0 or len(slots) == 0:
             return FreeSpaceRays(t_s, np.asarray(camera_ned, dtype=float), np.zeros((0, 3)))
         db = self.db
-        X, _ = self.model.point_from_state(db.y[slots], db.R_ref[slots])
+        X = self.model.point(db.y[slots], db.R_ref[slots])
         near = self.model.point_at_sigma(db.y[slots], db.P[slots], db.R_ref[slots], db.origin[slots], k)
         to_x = X - camera_ned
         r = np.sqrt((to_x * to_x).sum(axis=1))
@@ -530,7 +530,7 @@ class Mapper:
         end). Placed at the estimate's north and east."""
         if len(y) == 0:
             return TerrainFloors.empty(t_s)
-        X, _ = self.model.point_from_state(y, R_ref)
+        X = self.model.point(y, R_ref)
         far = self.model.point_at_sigma(y, P, R_ref, origin, -self.cfg.floor_sigma)
         down = np.fmax(X[:, 2], far[:, 2])  # NED: the lower of the two (NaN far: at infinity, no bound)
         keep = np.isfinite(X).all(axis=1) & np.isfinite(far[:, 2])

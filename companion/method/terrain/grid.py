@@ -450,19 +450,23 @@ class TerrainGrid:
         step = 0.5 * self.cell_size_m
         start = self.carve_start_m
         n_s = int(np.ceil((reach.max() - start) / step)) + 1
-        s = np.minimum(start + step * np.arange(n_s)[None, :], reach[:, None])  # (K, S) horizontal distance
-        frac = s / length[:, None]
-        north = o[0] + frac * d_ne[:, 0, None]
-        east = o[1] + frac * d_ne[:, 1, None]
-        alt = -o[2] + frac * (o[2] - ends[:, 2])[:, None]
-        ci, cj = self.cell_index(north.ravel(), east.ravel())
+        raw = start + step * np.arange(n_s)[None, :]
+        s = np.minimum(raw, reach[:, None])  # (K, S) horizontal distance
+        # A shorter segment's samples beyond its end all sit at the end: one of them is enough.
+        take = raw < reach[:, None] + step
+        ray = np.broadcast_to(np.arange(len(ends))[:, None], s.shape)[take]
+        frac = s[take] / length[ray]
+        north = o[0] + frac * d_ne[ray, 0]
+        east = o[1] + frac * d_ne[ray, 1]
+        alt = -o[2] + frac * (o[2] - ends[ray, 2])
+        ci, cj = self.cell_index(north, east)
         keys, local = self._cells(ci, cj)
         uk, where = np.unique(keys, return_inverse=True)
         slots = self._ensure_tiles(uk)[where]
         flat = slots * self._cells_per_tile + local
         cells, inv = np.unique(flat, return_inverse=True)
         low = np.full(len(cells), np.inf)
-        np.minimum.at(low, inv, alt.ravel())
+        np.minimum.at(low, inv, alt)
         c_old = self._c.reshape(-1)[cells]
         lowered = low < c_old
         self._c.reshape(-1)[cells[lowered]] = low[lowered]
