@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import cv2
 import numpy as np
@@ -257,3 +258,69 @@ def test_export_leaves_out_frames_without_navigation(tmp_path):
     counts = export_tum(open_recording(folder), tmp_path / "tum")
     assert counts["written"] + counts["without_nav"] == 12 and counts["without_nav"] >= 5
     assert len((tmp_path / "tum" / "poses.txt").read_text().splitlines()) == 1 + counts["written"]
+
+
+def _rewrite_poses(folder, change):
+    """poses.txt with ``change(t, xyz (3,), q_xyzw (4,)) -> (t, xyz, q_xyzw)`` applied to every pose."""
+    rows = []
+    for line in (folder / "poses.txt").read_text().splitlines():
+        if line.startswith("#"):
+            rows.append(line)
+            continue
+        f = [float(x) for x in line.split()]
+        t, xyz, q = change(f[0], np.array(f[1:4]), np.array(f[4:8]))
+        rows.append(" ".join(map(repr, [float(t), *map(float, xyz), *map(float, q)])))
+    (folder / "poses.txt").write_text("\n".join(rows) + "\n")
+
+
+def _quat_matrix(q_xyzw):
+    x, y, z, w = q_xyzw / np.linalg.norm(q_xyzw)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def test_implausible_inputs_get_a_warning_naming_the_likely_mistake(tmp_path, capsys):
+    """A user's recording with world-to-camera poses, the up axis reversed, or timestamps in
+    microseconds: the console says which, naming the recording, whatever the map became. (Quaternions
+    written w first are caught when they leave the camera looking up, rolled or underground; in this
+    flight they give a level camera, which a forward-looking mount can be, and are not.)"""
+    def replay(folder):
+        rc = cli.main(["replay", str(folder), "-o", str(tmp_path / f"out-{folder.name}"), "--no-progress"])
+        return rc, capsys.readouterr().err
+
+    good = rs.write_tum(tmp_path / "good", rs.flight(), WorldFrame("z", "x"))
+    rc, err = replay(good)
+    assert rc == 0 and "warning" not in err
+
+    # World-to-camera poses (the inverse of what the layout expects): the camera is 20 m under the
+    # ground, rolled on its side.
+    inverted = rs.write_tum(tmp_path / "inverted", rs.flight(), WorldFrame("z", "x"))
+
+    def invert(t, xyz, q):
+        R = _quat_matrix(q)
+        return t, -R.T @ xyz, np.array([-q[0], -q[1], -q[2], q[3]])
+
+    _rewrite_poses(inverted, invert)
+    rc, err = replay(inverted)
+    assert re.search(rf"companion replay: warning: {re.escape(str(inverted))}: the camera is below the ground "
+                     r"altitude \(0 m\) in (\d+) of 60 frames", err)
+    assert f"companion replay: warning: {inverted}: the image is rolled more than 60 deg from upright in 60 of 60 frames" in err
+    assert "world-to-camera" in err and "x y z w" in err and "world_up" in err
+    # The up axis reversed (meta.yaml world_up "-z" for a recording whose up is z): looking at the sky
+    # from below the ground.
+    upside = rs.write_tum(tmp_path / "upside", rs.flight(), WorldFrame("z", "x"))
+    meta = yaml.safe_load((upside / "meta.yaml").read_text())
+    (upside / "meta.yaml").write_text(yaml.safe_dump({**meta, "world_up": "-z"}))
+    rc, err = replay(upside)
+    assert f"companion replay: warning: {upside}: the camera looks above the horizon in 60 of 60 frames" in err
+
+    # Timestamps in microseconds, in both files: frames 66,667 s apart.
+    micro = rs.write_tum(tmp_path / "micro", rs.flight(), WorldFrame("z", "x"), t0=1.0)
+    _rewrite_poses(micro, lambda t, xyz, q: (t * 1e6, xyz, q))
+    lines = (micro / "images.txt").read_text().splitlines()
+    (micro / "images.txt").write_text("\n".join(
+        [lines[0]] + [f"{float(ln.split()[0]) * 1e6!r} {ln.split()[1]}" for ln in lines[1:]]) + "\n")
+    rc, err = replay(micro)
+    assert f"companion replay: warning: {micro}: the frames are a median of " in err
+    assert "microseconds or nanoseconds" in err

@@ -214,6 +214,48 @@ def nothing_mapped(m: dict[str, Any], path: Path) -> str | None:
             f"({mp['points_rejected_outlier']} outliers, {mp['points_rejected_invalid']} invalid)")
 
 
+LOOKS_UP_DEG = 5.0           # an optical axis this far above the horizon looks up
+ROLLED_DEG = 60.0            # an image whose "down" is this far from the world's down is rolled over
+IMPLAUSIBLE_FRACTION = 0.5   # warn when more of the frames than this show the same mistake
+MAX_FRAME_INTERVAL_S = 60.0  # a median interval between frames above this is not a camera's
+
+
+def plausibility(frame_times_s: np.ndarray, camera_alt_m: np.ndarray, R_nc: np.ndarray, ground_alt_m: float,
+                 recording_path: Path) -> list[str]:
+    """The likely mistakes the inputs show, one line each, naming the recording and what to check.
+    ``frame_times_s`` (N,) every listed frame's time, in order; ``camera_alt_m`` (K,) and ``R_nc``
+    (K, 3, 3) the camera's altitude and attitude (paper camera frame -> NED) in each mapped frame.
+
+    * The camera below the recording's ground altitude, its image rolled more than 60 deg from
+      upright, or its optical axis more than 5 deg above the horizon, in most frames: the signatures
+      of world-to-camera poses given where camera-to-world ones are expected, of quaternions in
+      another order, or of the wrong up axis (a downward camera seen through any of them).
+    * Frames a median of more than a minute apart: timestamps in microseconds or nanoseconds."""
+    warnings = []
+    k = len(camera_alt_m)
+    if k:
+        R = np.asarray(R_nc, dtype=float).reshape(k, 3, 3)
+        signs = (
+            (np.asarray(camera_alt_m) < ground_alt_m, f"the camera is below the ground altitude ({ground_alt_m:g} m)"),
+            (R[:, 2, 2] < np.cos(np.radians(ROLLED_DEG)), f"the image is rolled more than {ROLLED_DEG:.0f} deg from upright"),
+            (R[:, 2, 0] < -np.sin(np.radians(LOOKS_UP_DEG)), "the camera looks above the horizon"),
+        )
+        for bad, what in signs:
+            if np.count_nonzero(bad) > IMPLAUSIBLE_FRACTION * k:
+                warnings.append(
+                    f"{recording_path}: {what} in {np.count_nonzero(bad)} of {k} frames: are the poses world-to-camera "
+                    "(camera-to-world expected), the quaternions in another order (x y z w expected), or the up "
+                    "axis wrong (meta.yaml world_up)?")
+    t = np.asarray(frame_times_s, dtype=float)
+    if len(t) >= 2:
+        interval = float(np.median(np.diff(t)))
+        if interval > MAX_FRAME_INTERVAL_S:
+            warnings.append(
+                f"{recording_path}: the frames are a median of {interval:,.0f} s apart: are the timestamps in "
+                "microseconds or nanoseconds (seconds expected)?")
+    return warnings
+
+
 def run_replay(
     recording: Recording,
     cfg: CompanionConfig,
@@ -247,10 +289,14 @@ def run_replay(
     sums = dict(measurements=0, matched=0, initialised=0, removed=0, dropped=0, update_rejected=0, converged_points=0,
                 points_inserted=0, points_rejected_invalid=0, points_rejected_outlier=0, prior_fallback=0)
     path_ne: list[np.ndarray] = []
+    frame_times: list[float] = []
+    camera_alt: list[float] = []
+    camera_att: list[np.ndarray] = []
     mapper_s = 0.0
     t_start = time.perf_counter()
     for sample in recording.samples(limit=max_frames):
         counts["listed"] += 1
+        frame_times.append(sample.t_s)
         if sample.nav is None:
             counts["without_nav"] += 1
             _count(nav_reasons, reason_key(sample.nav_problem))
@@ -271,8 +317,10 @@ def run_replay(
                 examples.setdefault(reason_key(step.rejected_reason), step.rejected_reason)
             else:
                 counts["processed"] += 1
-                p_c, _ = recording.mount.camera_pose(sample.nav.position_ned_m, sample.nav.R_nb)
+                p_c, R_nc = recording.mount.camera_pose(sample.nav.position_ned_m, sample.nav.R_nb)
                 path_ne.append(p_c[:2])
+                camera_alt.append(float(-p_c[2]))
+                camera_att.append(R_nc)
             sums["measurements"] += step.n_measurements
             sums["matched"] += step.n_matched
             sums["initialised"] += step.n_initialised
@@ -315,6 +363,8 @@ def run_replay(
         "mapper": sums | {"n_active_end": mapper.db.n_active},
         "nav_missing_reasons": nav_reasons,
         "reason_examples": examples,
+        "warnings": plausibility(np.asarray(frame_times), np.asarray(camera_alt), np.asarray(camera_att),
+                                 recording.ground_alt_m, recording.path),
         "image_problems": image_problems,
         "refused_reasons": refused,
         "recording": recording.describe(),
@@ -472,6 +522,8 @@ def main(args: argparse.Namespace) -> int:
           f"{m['frames_unreadable']} unreadable, {m['frames_refused']} refused)"
           + (f"; mapper {fps:.1f} frames/s" if fps else ""))
     print(f"{m['converged_points']} converged points, {m['cells_mapped']} cells mapped -> {output}")
+    for warning in m["warnings"]:
+        print(f"companion replay: warning: {warning}", file=sys.stderr)
     why = nothing_mapped(m, path)
     if why is not None:
         print(f"companion replay: {why}", file=sys.stderr)
