@@ -324,3 +324,32 @@ def test_implausible_inputs_get_a_warning_naming_the_likely_mistake(tmp_path, ca
     rc, err = replay(micro)
     assert f"companion replay: warning: {micro}: the frames are a median of " in err
     assert "microseconds or nanoseconds" in err
+
+
+def test_reference_percentile_and_minimum_of_points_per_cell():
+    """A point cloud's cell: nine points of a roof at 10 m and one noisy point at 30 m. max takes the
+    noise; p90 interpolates between the 9th and 10th ranks (10 + 0.1 x 20 = 12 m), p50 is the median;
+    a cell with fewer points than the minimum is left out."""
+    north = np.r_[np.full(10, 0.5), 5.5]
+    east = np.full(11, 0.5)
+    height = np.r_[np.full(9, 10.0), 30.0, 4.0]
+    def by_cell(stat, min_points=1):
+        cells = bin_heights(north, east, height, 1.0, stat, min_points)
+        return dict(zip(map(int, cells.ci), cells.height.tolist()))
+    assert by_cell("max") == {0: 30.0, 5: 4.0}
+    assert by_cell("p90") == pytest.approx({0: 12.0, 5: 4.0})
+    assert by_cell("p50") == by_cell("median") == {0: 10.0, 5: 4.0}
+    assert by_cell("p100") == by_cell("max") and by_cell("p0") == {0: 10.0, 5: 4.0}
+    assert by_cell("p90", min_points=3) == pytest.approx({0: 12.0})
+    for bad in ("p101", "px", "top", "p-1"):
+        with pytest.raises(ValueError, match="pNN"):
+            bin_heights(north, east, height, 1.0, bad)
+
+
+def test_a_wrong_reference_statistic_is_refused_in_one_line(data, tmp_path, capsys):
+    for args, words in ((["--reference-stat", "p120"], "--reference-stat: statistic must be mean, median, max or pNN"),
+                        (["--reference-min-points", "0"], "--reference-min-points must be at least 1, got 0")):
+        rc = cli.main(["replay", str(data["tum"]), "-o", str(tmp_path / "o"), "--no-progress",
+                       "--reference", str(data["truth"]), *args])
+        err = capsys.readouterr().err
+        assert rc == 2 and len(err.strip().splitlines()) == 1 and words in err, err

@@ -18,13 +18,28 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 from companion.method.terrain.grid import TerrainGrid
 
-Statistic = Literal["mean", "median", "max"]
+Statistic = str  # "mean", "median", "max" or "pNN" (the NN-th percentile, 0-100)
+
+
+def percentile_of(statistic: str) -> float | None:
+    """The percentile (0-100) a ``"pNN"`` statistic names, None for mean, median and max;
+    ValueError for anything else."""
+    if statistic in ("mean", "median", "max"):
+        return None
+    if statistic.startswith("p"):
+        try:
+            q = float(statistic[1:])
+        except ValueError:
+            q = math.nan
+        if 0.0 <= q <= 100.0:
+            return q
+    raise ValueError(f"statistic must be mean, median, max or pNN (a percentile 0-100, e.g. p90), got {statistic!r}")
 _SHIFT = np.int64(1 << 32)
 _BIAS = np.int64(1 << 31)
 
@@ -116,10 +131,12 @@ def read_reference_csv(path: str | Path) -> ReferencePoints:
 
 
 def bin_heights(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray, cell_size_m: float,
-                statistic: Statistic = "mean") -> CellHeights:
-    """Reduce points (N,) to one height per cell of size ``cell_size_m``: mean, median or max."""
-    if statistic not in ("mean", "median", "max"):
-        raise ValueError(f"statistic must be mean, median or max, got {statistic!r}")
+                statistic: Statistic = "mean", min_points: int = 1) -> CellHeights:
+    """Reduce points (N,) to one height per cell of size ``cell_size_m``: mean, median, max or the
+    ``pNN`` percentile (linear between the two nearest ranks; for a point cloud's top surface
+    ``p90`` keeps what ``max`` gives but not its single noisy points); cells with fewer than
+    ``min_points`` points are left out."""
+    q = percentile_of(statistic)
     ci = np.floor(np.asarray(north_m, float) / cell_size_m).astype(np.int64)
     cj = np.floor(np.asarray(east_m, float) / cell_size_m).astype(np.int64)
     h = np.asarray(height_m, float)
@@ -132,10 +149,17 @@ def bin_heights(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray, c
         out = np.add.reduceat(h, start) / count if len(h) else np.zeros(0)
     elif statistic == "max":
         out = h[start + count - 1]
+    elif q is not None:
+        rank = (count - 1) * (q / 100.0)
+        lo = np.floor(rank).astype(np.int64)
+        hi = np.minimum(lo + 1, count - 1)
+        out = h[start + lo] + (rank - lo) * (h[start + hi] - h[start + lo])
     else:
         lo, hi = start + (count - 1) // 2, start + count // 2
         out = 0.5 * (h[lo] + h[hi])
     k = keys[start]
+    keep = count >= max(int(min_points), 1)
+    k, out, count = k[keep], out[keep], count[keep]
     cell_i = np.floor_divide(k, _SHIFT)
     return CellHeights(cell_i, k - cell_i * _SHIFT - _BIAS, out, count=count)
 

@@ -30,7 +30,8 @@ import numpy as np
 from companion import config as config_mod
 from companion.config import CompanionConfig, ConfigError
 from companion.desk import plots
-from companion.desk.map_metrics import CellHeights, compare, bin_heights, dense_heights, map_cells, read_reference_csv
+from companion.desk.map_metrics import (CellHeights, bin_heights, compare, dense_heights, map_cells, percentile_of,
+                                        read_reference_csv)
 from companion.desk.plots import height_map
 from companion.desk.recordings.layouts import open_recording, recording_config
 from companion.desk.recordings.recording import Overrides, Recording, RecordingError, reason_key
@@ -109,13 +110,22 @@ class Reference:
     frame: str
     bad_lines: int = 0
     statistic: str = "mean"
+    min_points: int = 1
 
 
-def load_reference(path: str | Path, recording: Recording, frame: str = "map", statistic: str = "mean") -> Reference:
+def load_reference(path: str | Path, recording: Recording, frame: str = "map", statistic: str = "mean",
+                   min_points: int = 1) -> Reference:
     """Read a reference CSV. ``frame="map"``: columns are north, east, altitude up (m) in the map's
     local frame. ``frame="dataset"``: columns are x, y, z in the recording's own world frame (world
     units), converted like its poses (:class:`companion.desk.recordings.recording.WorldFrame`; for the service's
-    own recordings that frame is NED, z down)."""
+    own recordings that frame is NED, z down). ``statistic`` and ``min_points``: how the points in
+    one map cell become its height (:func:`companion.desk.map_metrics.bin_heights`)."""
+    try:
+        percentile_of(statistic)  # a statistic that does not exist is refused before reading
+    except ValueError as exc:
+        raise ValueError(f"--reference-stat: {exc}") from None
+    if int(min_points) < 1:
+        raise ValueError(f"--reference-min-points must be at least 1, got {min_points}")
     ref = read_reference_csv(path)
     xyz = ref.xyz
     if frame == "dataset":
@@ -125,7 +135,7 @@ def load_reference(path: str | Path, recording: Recording, frame: str = "map", s
         north, east, height = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     else:
         raise ValueError(f"reference frame must be 'map' or 'dataset', got {frame!r}")
-    return Reference(north, east, height, str(path), frame, ref.bad_lines, statistic)
+    return Reference(north, east, height, str(path), frame, ref.bad_lines, statistic, int(min_points))
 
 
 @dataclass(slots=True)
@@ -381,9 +391,11 @@ def run_replay(
     }
     outputs: dict[str, Path] = {}
     if reference is not None:
-        ref_cells = bin_heights(reference.north_m, reference.east_m, reference.height_m, grid.cell_size_m, reference.statistic)
+        ref_cells = bin_heights(reference.north_m, reference.east_m, reference.height_m, grid.cell_size_m,
+                                reference.statistic, reference.min_points)
         metrics["reference"] = compare(cells, ref_cells) | {
             "source": reference.source, "frame": reference.frame, "statistic": reference.statistic,
+            "min_points": reference.min_points,
             "points": int(len(reference.height_m)), "bad_lines": reference.bad_lines,
         }  # fmt: skip
         outputs["error_png"] = _error_figure(output / ERROR_PNG, cells, ref_cells, grid.cell_size_m, camera_path, metrics["reference"])
@@ -448,8 +460,11 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reference", metavar="FILE.csv", help="reference surface (DSM grid or point cloud, x,y,z per line)")
     p.add_argument("--reference-frame", choices=("map", "dataset"), default="map",
                    help="map: north,east,altitude-up in the map frame; dataset: x,y,z in the recording's world frame")
-    p.add_argument("--reference-stat", choices=("mean", "median", "max"), default="mean",
-                   help="how reference points in one map cell become its height")
+    p.add_argument("--reference-stat", default="mean", metavar="STAT",
+                   help="how reference points in one map cell become its height: mean (default), median, max, or "
+                        "pNN, a percentile (p90: the top surface of a point cloud without its single noisy points)")
+    p.add_argument("--reference-min-points", type=int, default=1, metavar="N",
+                   help="map cells holding fewer reference points are left out of the comparison (default 1)")
     p.add_argument("--pose-sigma-m", type=float, metavar="M", help="pose position sigma (TUM/EuRoC; overrides metadata)")
     p.add_argument("--pose-sigma-deg", type=float, metavar="DEG", help="pose attitude sigma (TUM/EuRoC; overrides metadata)")
     p.add_argument("--ground-alt-m", type=float, metavar="M", help="ground altitude assumed before the map knows")
@@ -501,7 +516,8 @@ def main(args: argparse.Namespace) -> int:
         return 0
 
     try:
-        reference = load_reference(args.reference, recording, args.reference_frame, args.reference_stat) if args.reference else None
+        reference = (load_reference(args.reference, recording, args.reference_frame, args.reference_stat,
+                                    args.reference_min_points) if args.reference else None)
     except ValueError as exc:
         return _fail(str(exc))
     mask = None
