@@ -353,3 +353,16 @@ def test_a_wrong_reference_statistic_is_refused_in_one_line(data, tmp_path, caps
                        "--reference", str(data["truth"]), *args])
         err = capsys.readouterr().err
         assert rc == 2 and len(err.strip().splitlines()) == 1 and words in err, err
+
+
+@pytest.mark.parametrize("meta, words", [
+    ({"world_up": "q"}, "world_up"),
+    ({"world_north": "z"}, "world_north 'z' must be perpendicular to world_up 'z'"),
+    ({"scale_m_per_unit": "big"}, "'scale_m_per_unit' must be a number, got 'big'"),
+])
+def test_a_meta_yaml_error_names_the_file(tmp_path, capsys, meta, words):
+    folder = rs.write_tum(tmp_path / "r", rs.flight(n_frames=5), WorldFrame("z", "x"))
+    (folder / "meta.yaml").write_text(yaml.safe_dump({**yaml.safe_load((folder / "meta.yaml").read_text()), **meta}))
+    rc = cli.main(["replay", str(folder), "-o", str(tmp_path / "o"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith(f"companion replay: {folder / 'meta.yaml'}: ") and words in err, err

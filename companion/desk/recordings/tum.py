@@ -80,7 +80,11 @@ def open_tum(folder: Path, nav: NavConfig, overrides: Overrides = Overrides(), m
     check_keys(meta, TUM_META_KEYS, meta_path)
     if "world_up" not in meta or "scale_m_per_unit" not in meta:
         raise RecordingError(f"{meta_path}: must declare 'world_up' (x, -x, y, -y, z or -z) and 'scale_m_per_unit'")
-    world = WorldFrame.from_up(meta["world_up"], meta.get("world_north"), _meta_float(meta, "scale_m_per_unit", 1.0, 1e-12, meta_path))
+    try:
+        world = WorldFrame.from_up(meta["world_up"], meta.get("world_north"), _meta_float(meta, "scale_m_per_unit", 1.0, 1e-12, meta_path))
+    except RecordingError as exc:
+        text = str(exc)
+        raise RecordingError(text if text.startswith(str(meta_path)) else f"{meta_path}: {text}") from None
     sigma_m = overrides.pose_sigma_m if overrides.pose_sigma_m is not None else _meta_float(meta, "pose_sigma_m", 0.02, 0.0, meta_path)
     sigma_deg = overrides.pose_sigma_deg if overrides.pose_sigma_deg is not None else _meta_float(meta, "pose_sigma_deg", 0.2, 0.0, meta_path)
     ground = overrides.ground_alt_m if overrides.ground_alt_m is not None else _meta_float(meta, "ground_alt_m", 0.0, -1e6, meta_path)
