@@ -241,16 +241,11 @@ def test_a_replay_that_maps_nothing_says_why_on_the_console_and_exits_3(data, tm
     assert "(limit nav.buffer_max_gap_s 0.500 s)" in out.err
     # Geo-referenced (UTM-like) coordinates: every converged point is beyond terrain.max_abs_coordinate_m.
     folder = rs.write_tum(tmp_path / "utm", rs.flight(), WorldFrame("z", "x"))
-    rows = []
-    for line in (folder / "poses.txt").read_text().splitlines():
-        f = line.split()
-        if not line.startswith("#"):
-            f[1], f[2] = repr(float(f[1]) + 5.0e6), repr(float(f[2]) + 4.0e5)
-        rows.append(" ".join(f))
-    (folder / "poses.txt").write_text("\n".join(rows) + "\n")
+    _rewrite_poses(folder, lambda t, xyz, q: (t, xyz + UTM_SHIFT, q))
     rc, out = replay(folder)
     assert rc == 3
     assert "converged points rejected as invalid by the map: coordinates beyond terrain.max_abs_coordinate_m" in out.err
+    assert "'origin: auto'" in out.err and "meta.yaml" in out.err
 
 
 def test_export_leaves_out_frames_without_navigation(tmp_path):
@@ -258,6 +253,9 @@ def test_export_leaves_out_frames_without_navigation(tmp_path):
     counts = export_tum(open_recording(folder), tmp_path / "tum")
     assert counts["written"] + counts["without_nav"] == 12 and counts["without_nav"] >= 5
     assert len((tmp_path / "tum" / "poses.txt").read_text().splitlines()) == 1 + counts["written"]
+
+
+UTM_SHIFT = np.array([5.0e6, 4.0e5, 0.0])  # a geo-referenced world's offset (world units)
 
 
 def _rewrite_poses(folder, change):
@@ -366,3 +364,31 @@ def test_a_meta_yaml_error_names_the_file(tmp_path, capsys, meta, words):
     rc = cli.main(["replay", str(folder), "-o", str(tmp_path / "o"), "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 2 and err.startswith(f"companion replay: {folder / 'meta.yaml'}: ") and words in err, err
+
+
+def test_a_geo_referenced_world_maps_about_its_origin(tmp_path, capsys):
+    """UTM-like poses 5,000 km from their frame's origin: with the origin's coordinates in meta.yaml
+    the recording maps as the local one does; with 'origin: auto' about its first pose; a wrong
+    origin is refused in one line naming the file."""
+    def utm(name, origin):
+        folder = rs.write_tum(tmp_path / name, rs.flight(), WorldFrame("z", "x"))
+        _rewrite_poses(folder, lambda t, xyz, q: (t, xyz + UTM_SHIFT, q))
+        meta = yaml.safe_load((folder / "meta.yaml").read_text())
+        (folder / "meta.yaml").write_text(yaml.safe_dump({**meta, "origin": origin}))
+        return folder
+
+    local = run_replay(open_recording(rs.write_tum(tmp_path / "local", rs.flight(), WorldFrame("z", "x"))),
+                       CompanionConfig(), tmp_path / "out-local")
+    fixed = run_replay(open_recording(utm("fixed", UTM_SHIFT.tolist())), CompanionConfig(), tmp_path / "out-fixed")
+    same = compare(map_cells(fixed.grid), map_cells(local.grid))
+    assert local.metrics["cells_mapped"] > 100 and same["coverage"] > 0.95 and same["rmse_m"] < 0.01
+    folder = utm("auto", "auto")
+    first = next(line.split() for line in (folder / "poses.txt").read_text().splitlines() if not line.startswith("#"))
+    auto = open_recording(folder)
+    assert auto.describe()["world"]["origin"] == pytest.approx([float(v) for v in first[1:4]])
+    assert run_replay(auto, CompanionConfig(), tmp_path / "out-auto").metrics["cells_mapped"] > 100
+    for name, bad in (("sky", "sky"), ("two", [1.0, 2.0]), ("text", ["x", 1, 2])):
+        folder = utm(name, bad)
+        rc = cli.main(["replay", str(folder), "-o", str(tmp_path / "o"), "--no-progress"])
+        err = capsys.readouterr().err
+        assert rc == 2 and f"{folder / 'meta.yaml'}: 'origin' must be three numbers" in err, err

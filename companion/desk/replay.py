@@ -219,7 +219,8 @@ def nothing_mapped(m: dict[str, Any], path: Path) -> str | None:
                 f"{mp['initialised']} features started): too little motion between frames, or too little texture")
     if mp["points_rejected_invalid"] >= m["converged_points"]:
         return (f"{path}: all {m['converged_points']} converged points rejected as invalid by the map: coordinates beyond "
-                f"terrain.max_abs_coordinate_m, or non-finite; geo-referenced worlds need a local origin")
+                f"terrain.max_abs_coordinate_m, or non-finite; a geo-referenced world needs a local origin ('origin: auto' "
+                f"or the origin's coordinates in meta.yaml)")
     return (f"{path}: {m['converged_points']} converged points but no cell mapped "
             f"({mp['points_rejected_outlier']} outliers, {mp['points_rejected_invalid']} invalid)")
 

@@ -62,13 +62,16 @@ class WorldFrame:
 
     ``A`` (3, 3) maps world directions to NED: its rows are north, east and down written in world
     coordinates, with down = -up and east = down x north (so that north x east = down: a proper
-    rotation, det A = +1, for a right-handed world frame). Positions: ``p_ned = scale * A p_w``.
-    The default (up -z, north x, scale 1) is NED itself.
+    rotation, det A = +1, for a right-handed world frame). Positions: ``p_ned = scale * A (p_w - o)``
+    with ``origin`` ``o`` (3,) in world units, the world point taken as the local frame's origin (a
+    geo-referenced world, UTM or ECEF, is millions of units from its own). The default (up -z,
+    north x, scale 1, origin 0) is NED itself.
     """
 
     up: str = "-z"
     north: str = "x"
     scale_m_per_unit: float = 1.0
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         up, north = _axis(self.up, "world_up"), _axis(self.north, "world_north")
@@ -76,13 +79,16 @@ class WorldFrame:
             raise RecordingError(f"world_north {self.north!r} must be perpendicular to world_up {self.up!r}")
         if not (math.isfinite(self.scale_m_per_unit) and self.scale_m_per_unit > 0):
             raise RecordingError(f"scale_m_per_unit must be positive and finite, got {self.scale_m_per_unit}")
+        if len(self.origin) != 3 or not all(math.isfinite(float(v)) for v in self.origin):
+            raise RecordingError(f"origin must be three finite numbers (world units), got {self.origin!r}")
 
     @classmethod
-    def from_up(cls, up: str, north: str | None = None, scale_m_per_unit: float = 1.0) -> "WorldFrame":
+    def from_up(cls, up: str, north: str | None = None, scale_m_per_unit: float = 1.0,
+                origin=(0.0, 0.0, 0.0)) -> "WorldFrame":
         """North defaults to world x, or world y when up is +-x."""
         if north is None:
             north = "y" if str(up).strip().lower().lstrip("+-") == "x" else "x"
-        return cls(str(up), str(north), float(scale_m_per_unit))
+        return cls(str(up), str(north), float(scale_m_per_unit), tuple(float(v) for v in origin))
 
     @property
     def A(self) -> np.ndarray:
@@ -93,10 +99,10 @@ class WorldFrame:
 
     def position_to_ned(self, p_w: np.ndarray) -> np.ndarray:
         """World positions (..., 3) in world units -> NED metres (..., 3)."""
-        return self.scale_m_per_unit * (np.asarray(p_w, float) @ self.A.T)
+        return self.scale_m_per_unit * ((np.asarray(p_w, float) - np.asarray(self.origin)) @ self.A.T)
 
     def position_from_ned(self, p_ned: np.ndarray) -> np.ndarray:
-        return (np.asarray(p_ned, float) @ self.A) / self.scale_m_per_unit
+        return (np.asarray(p_ned, float) @ self.A) / self.scale_m_per_unit + np.asarray(self.origin)
 
     def rotation_to_ned(self, R_w: np.ndarray) -> np.ndarray:
         """Rotations (..., 3, 3) mapping some frame to the world -> the same frame to NED."""
@@ -327,7 +333,8 @@ class Recording:
             "frames_listed": len(self.frames),
             "camera": {"width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
                        "distortion": [float(d) for d in np.asarray(c.distortion).ravel()]},
-            "world": {"up": self.world.up, "north": self.world.north, "scale_m_per_unit": self.world.scale_m_per_unit},
+            "world": {"up": self.world.up, "north": self.world.north, "scale_m_per_unit": self.world.scale_m_per_unit,
+                      "origin": list(self.world.origin)},
             "ground_alt_m": self.ground_alt_m,
             **self.stats.as_dict(),
         }

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -42,8 +43,23 @@ TUM_CAMERA = "camera.yaml"
 TUM_META = "meta.yaml"
 TUM_SIGMAS = "pose_sigmas.txt"
 
-TUM_META_KEYS = ("world_up", "world_north", "scale_m_per_unit", "pose_sigma_m", "pose_sigma_deg", "ground_alt_m",
-                 "association_s", "source")
+TUM_META_KEYS = ("world_up", "world_north", "scale_m_per_unit", "origin", "pose_sigma_m", "pose_sigma_deg",
+                 "ground_alt_m", "association_s", "source")
+
+
+def _meta_origin(meta: dict, where: Path) -> tuple[float, float, float] | None:
+    """meta.yaml ``origin``: three numbers (world units), ``auto`` (None: the first pose's position) or
+    absent (zero)."""
+    value = meta.get("origin", [0.0, 0.0, 0.0])
+    if isinstance(value, str) and value.strip().lower() == "auto":
+        return None
+    try:
+        origin = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        origin = ()
+    if len(origin) != 3 or not all(math.isfinite(v) for v in origin):
+        raise RecordingError(f"{where}: 'origin' must be three numbers in world units, or 'auto' (the first pose), got {value!r}")
+    return origin
 
 
 def _sigmas(text: list[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -80,8 +96,10 @@ def open_tum(folder: Path, nav: NavConfig, overrides: Overrides = Overrides(), m
     check_keys(meta, TUM_META_KEYS, meta_path)
     if "world_up" not in meta or "scale_m_per_unit" not in meta:
         raise RecordingError(f"{meta_path}: must declare 'world_up' (x, -x, y, -y, z or -z) and 'scale_m_per_unit'")
+    origin = _meta_origin(meta, meta_path)
     try:
-        world = WorldFrame.from_up(meta["world_up"], meta.get("world_north"), _meta_float(meta, "scale_m_per_unit", 1.0, 1e-12, meta_path))
+        world = WorldFrame.from_up(meta["world_up"], meta.get("world_north"), _meta_float(meta, "scale_m_per_unit", 1.0, 1e-12, meta_path),
+                                   origin if origin is not None else (0.0, 0.0, 0.0))
     except RecordingError as exc:
         text = str(exc)
         raise RecordingError(text if text.startswith(str(meta_path)) else f"{meta_path}: {text}") from None
@@ -119,7 +137,7 @@ def open_tum(folder: Path, nav: NavConfig, overrides: Overrides = Overrides(), m
     poses_path = first_existing(folder, TUM_POSES)
     if poses_path is None:
         raise RecordingError(f"{folder}: no pose file ({' or '.join(TUM_POSES)})")
-    t, p, R = [], [], []
+    rows = []
     for line_no, fields in table_rows(poses_path, stats):
         try:
             if len(fields) != 8:
@@ -129,11 +147,16 @@ def open_tum(folder: Path, nav: NavConfig, overrides: Overrides = Overrides(), m
             norm = float(np.linalg.norm(q_xyzw))
             if abs(norm - 1.0) > 1e-3:
                 raise ValueError(f"quaternion norm {norm:.6f} (unit quaternion expected)")
-            p_c, R_nc = camera_pose_from_opencv(np.asarray(values[1:4]), quat_to_matrix(np.r_[q_xyzw[3], q_xyzw[:3]]), world)
         except ValueError as exc:
             stats.bad_line(poses_path, line_no, str(exc))
             continue
-        t.append(values[0])
+        rows.append((values[0], np.asarray(values[1:4]), quat_to_matrix(np.r_[q_xyzw[3], q_xyzw[:3]])))
+    if origin is None and rows:  # origin: auto, the earliest pose's position
+        world = replace(world, origin=tuple(float(v) for v in min(rows, key=lambda r: r[0])[1]))
+    t, p, R = [], [], []
+    for t_k, xyz, R_w_cv in rows:
+        p_c, R_nc = camera_pose_from_opencv(xyz, R_w_cv, world)
+        t.append(t_k)
         p.append(p_c)
         R.append(R_nc)
     tt, pp, qq = sorted_poses(t, p, R, poses_path, stats)
