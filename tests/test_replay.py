@@ -392,3 +392,40 @@ def test_a_geo_referenced_world_maps_about_its_origin(tmp_path, capsys):
         rc = cli.main(["replay", str(folder), "-o", str(tmp_path / "o"), "--no-progress"])
         err = capsys.readouterr().err
         assert rc == 2 and f"{folder / 'meta.yaml'}: 'origin' must be three numbers" in err, err
+
+
+def _write_ply(path, xyz, fmt):
+    """A PLY point cloud of ``xyz`` (N, 3) with a colour per vertex, as photogrammetry tools write."""
+    header = (f"ply\nformat {fmt} 1.0\ncomment written by the test\nelement vertex {len(xyz)}\n"
+              "property double x\nproperty double y\nproperty float z\nproperty uchar red\nend_header\n")
+    if fmt == "ascii":
+        body = "".join(f"{float(x)!r} {float(y)!r} {float(z)!r} 200\n" for x, y, z in xyz).encode()
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        rows = np.zeros(len(xyz), dtype=[("x", order + "f8"), ("y", order + "f8"), ("z", order + "f4"), ("red", "u1")])
+        rows["x"], rows["y"], rows["z"], rows["red"] = xyz[:, 0], xyz[:, 1], xyz[:, 2], 200
+        body = rows.tobytes()
+    path.write_bytes(header.encode() + body)
+    return path
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian", "binary_big_endian"])
+def test_a_ply_point_cloud_is_a_reference_like_its_csv(data, tmp_path, fmt, capsys):
+    """The truth as a PLY (the photogrammetry tools' point cloud, with a colour property) judges the
+    map exactly as the same points in a CSV do; a damaged PLY is refused in one line naming it."""
+    rec = open_recording(data["tum"], CompanionConfig())
+    csv = load_reference(data["truth"], rec)
+    xyz = np.column_stack([csv.north_m, csv.east_m, csv.height_m])
+    ply = load_reference(_write_ply(tmp_path / "truth.ply", xyz, fmt), rec)
+    assert np.allclose(np.column_stack([ply.north_m, ply.east_m]), xyz[:, :2])
+    assert np.allclose(ply.height_m, xyz[:, 2], atol=1e-5)  # float32 z
+    grid = direct_map(CompanionConfig(), 0.05, 0.2)
+    a = compare(map_cells(grid), bin_heights(csv.north_m, csv.east_m, csv.height_m, 1.0))
+    b = compare(map_cells(grid), bin_heights(ply.north_m, ply.east_m, ply.height_m, 1.0))
+    assert b["cells_compared"] == a["cells_compared"] and b["rmse_m"] == pytest.approx(a["rmse_m"], abs=1e-5)
+    if fmt != "ascii":
+        broken = tmp_path / "broken.ply"
+        broken.write_bytes((tmp_path / "truth.ply").read_bytes()[:-7])
+        rc = cli.main(["replay", str(data["tum"]), "-o", str(tmp_path / "o"), "--no-progress", "--reference", str(broken)])
+        err = capsys.readouterr().err
+        assert rc == 2 and err.startswith(f"companion replay: {broken}: truncated") and len(err.splitlines()) == 1, err

@@ -130,6 +130,76 @@ def read_reference_csv(path: str | Path) -> ReferencePoints:
     return ReferencePoints(path, np.asarray(rows, float), bad, first)
 
 
+PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+             "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+             "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def read_reference_ply(path: str | Path) -> ReferencePoints:
+    """The vertices of a PLY point cloud (ascii, binary_little_endian or binary_big_endian; the
+    ``vertex`` element's ``x``, ``y``, ``z`` properties, any others skipped; elements before it are
+    not supported): the usual output of photogrammetry and SfM tools. Non-finite vertices are
+    counted and skipped; a file that is not such a PLY raises ValueError naming it and why."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read reference surface: {exc.strerror or exc}") from exc
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise ValueError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
+    body = data[data.index(b"\n", end) + 1:]
+    fmt, n_vertex, props, element = None, None, [], None
+    for raw in data[:end].decode("ascii", "replace").splitlines()[1:]:
+        words = raw.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format" and len(words) >= 2:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3:
+            element = words[1]
+            if element == "vertex":
+                n_vertex = int(words[2])
+            elif n_vertex is None:
+                raise ValueError(f"{path}: element '{element}' comes before 'vertex' (not supported)")
+        elif words[0] == "property" and element == "vertex":
+            if words[1] == "list" or len(words) != 3 or words[1] not in PLY_TYPES:
+                raise ValueError(f"{path}: vertex property {' '.join(words[1:])!r} not supported")
+            props.append((words[2], PLY_TYPES[words[1]]))
+    names = [name for name, _ in props]
+    if n_vertex is None or not all(axis in names for axis in "xyz"):
+        raise ValueError(f"{path}: no vertex element with x, y and z properties")
+    if fmt == "ascii":
+        rows = [line.split() for line in body.decode("ascii", "replace").splitlines()[:n_vertex]]
+        try:
+            table = np.array([[float(v) for v in row[: len(props)]] for row in rows if len(row) >= len(props)])
+        except ValueError as exc:
+            raise ValueError(f"{path}: vertex line not numbers: {exc}") from exc
+        table = table.reshape(-1, len(props))
+        xyz = table[:, [names.index(a) for a in "xyz"]]
+    elif fmt in ("binary_little_endian", "binary_big_endian"):
+        order = "<" if fmt == "binary_little_endian" else ">"
+        dtype = np.dtype([(name, order + code) for name, code in props])
+        if len(body) < n_vertex * dtype.itemsize:
+            raise ValueError(f"{path}: truncated: {n_vertex} vertices need {n_vertex * dtype.itemsize} bytes, "
+                             f"{len(body)} there")
+        table = np.frombuffer(body, dtype=dtype, count=n_vertex)
+        xyz = np.column_stack([table[a].astype(np.float64) for a in "xyz"])
+    else:
+        raise ValueError(f"{path}: PLY format {fmt!r} not supported (ascii, binary_little_endian, binary_big_endian)")
+    finite = np.isfinite(xyz).all(axis=1)
+    bad = int(len(xyz) - np.count_nonzero(finite)) + (n_vertex - len(xyz))
+    if not finite.any():
+        raise ValueError(f"{path}: no usable vertex")
+    return ReferencePoints(path, xyz[finite], bad, f"{path}: {bad} vertices not finite or missing" if bad else "")
+
+
+def read_reference(path: str | Path) -> ReferencePoints:
+    """A reference surface by its file: ``.ply`` a point cloud (:func:`read_reference_ply`), anything
+    else ``x,y,z`` text (:func:`read_reference_csv`)."""
+    return read_reference_ply(path) if Path(path).suffix.lower() == ".ply" else read_reference_csv(path)
+
+
 def bin_heights(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray, cell_size_m: float,
                 statistic: Statistic = "mean", min_points: int = 1) -> CellHeights:
     """Reduce points (N,) to one height per cell of size ``cell_size_m``: mean, median, max or the

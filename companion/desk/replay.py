@@ -31,7 +31,7 @@ from companion import config as config_mod
 from companion.config import CompanionConfig, ConfigError
 from companion.desk import plots
 from companion.desk.map_metrics import (CellHeights, bin_heights, compare, dense_heights, map_cells, percentile_of,
-                                        read_reference_csv)
+                                        read_reference)
 from companion.desk.plots import height_map
 from companion.desk.recordings.layouts import open_recording, recording_config
 from companion.desk.recordings.recording import Overrides, Recording, RecordingError, reason_key
@@ -126,7 +126,7 @@ def load_reference(path: str | Path, recording: Recording, frame: str = "map", s
         raise ValueError(f"--reference-stat: {exc}") from None
     if int(min_points) < 1:
         raise ValueError(f"--reference-min-points must be at least 1, got {min_points}")
-    ref = read_reference_csv(path)
+    ref = read_reference(path)
     xyz = ref.xyz
     if frame == "dataset":
         ned = recording.world.position_to_ned(xyz)
