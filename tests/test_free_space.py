@@ -232,3 +232,15 @@ def test_the_mapper_floors_a_feature_at_the_lower_end_of_its_depth_bound():
     assert -floors.positions_ned_m[0, 2] == pytest.approx(15.0 - far * np.sin(np.pi / 4))
     assert -floors.positions_ned_m[0, 2] < 15.0 - d * np.sin(np.pi / 4)  # below the estimate
     assert floors.positions_ned_m[0, :2] == pytest.approx([d * np.cos(np.pi / 4), 0.0])  # at the estimate
+
+
+def test_a_tile_carving_creates_is_published_like_any_other():
+    """Every tile the map holds is one a subscriber or a map query gets: a tile that only a line of
+    sight reached (no height yet) is dirty too, so the daemon publishes it and its status's tile
+    count matches what a late joiner's query returns."""
+    grid = TerrainGrid()
+    grid.carve(one_ray((70.0, 0.5, 0.0)))  # crosses tiles 0, 1 and 2 along north
+    assert len(grid) >= 2 and grid.pop_dirty() == grid.keys()
+    assert all(int((grid.tile(k).count > 0).sum()) == 0 for k in grid.keys())
+    grid.raise_floors(TerrainFloors(0.0, np.array([[-40.5, 0.5, -3.0]])))
+    assert grid.pop_dirty() == [(-2, 0)]

@@ -221,7 +221,9 @@ class TerrainGrid:
         return np.where(self._keys[pos] == keys, self._key_slots[pos], -1)
 
     def _ensure_tiles(self, keys: np.ndarray) -> np.ndarray:
-        """Pool slots of unique packed ``keys``, creating the missing tiles."""
+        """Pool slots of unique packed ``keys``, creating the missing tiles. A new tile is dirty (to
+        be published) even if it holds no height yet: carving and floors create tiles too, and every
+        tile the map holds is one a subscriber or a map query gets."""
         slots = self._slots_of(keys)
         missing = slots < 0
         if missing.any():
@@ -232,6 +234,7 @@ class TerrainGrid:
             self._n_tiles += len(new_keys)
             tx, ty = unpack_key(new_keys)
             self._slot_key.extend(zip(tx.tolist(), ty.tolist()))
+            self._dirty.update(zip(tx.tolist(), ty.tolist()))
             keys_all = np.concatenate([self._keys, new_keys])
             slots_all = np.concatenate([self._key_slots, new_slots])
             order = np.argsort(keys_all, kind="stable")
