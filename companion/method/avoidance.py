@@ -29,12 +29,19 @@ from companion.config import AvoidanceConfig
 from companion.method.terrain.grid import Corridor, TerrainGrid
 
 
+def entry_distance(along_m: np.ndarray, cross_m: np.ndarray, radius_m: float) -> np.ndarray:
+    """Distance (m) along track before the vehicle, flying straight, first comes within
+    ``radius_m`` of each cell centre (``along``/``cross`` relative to its track); <= 0 if it already
+    is. All arrays (K,)."""
+    return along_m - np.sqrt(np.maximum(radius_m * radius_m - cross_m * cross_m, 0.0))
+
+
 def time_to_go(along_m: np.ndarray, cross_m: np.ndarray, radius_m: float, speed_mps: float) -> np.ndarray:
     """Delta t_i (s): time until the vehicle, flying straight at ``speed_mps``, first comes within
     ``radius_m`` of each cell centre (``along``/``cross`` relative to its track), 0 if already
     within it. At hover speed nothing ahead ever arrives: infinity, except cells already within
     reach (0). All arrays (K,)."""
-    entry = along_m - np.sqrt(np.maximum(radius_m * radius_m - cross_m * cross_m, 0.0))
+    entry = entry_distance(along_m, cross_m, radius_m)
     if speed_mps <= 0.0:
         return np.where(entry <= 0.0, 0.0, np.inf)
     return np.maximum(entry, 0.0) / speed_mps
@@ -243,7 +250,8 @@ def climb_time(gain_m: np.ndarray, climb_now_mps: float, accel: float, max_climb
         return np.where(h > 0, np.inf, 0.0)
     wp = np.sqrt(np.maximum(a * h + 0.5 * w0 * w0, 0.0))
     free = (wp - w0) / a + wp / a
-    capped = (w_max - w0) / a + w_max / a + (h - (2.0 * w_max * w_max - w0 * w0) / (2.0 * a)) / w_max
+    with np.errstate(invalid="ignore"):  # an unlimited climb rate: the capped branch is never taken
+        capped = (w_max - w0) / a + w_max / a + (h - (2.0 * w_max * w_max - w0 * w0) / (2.0 * a)) / w_max
     braking = (w0 - np.sqrt(np.maximum(w0 * w0 - 2.0 * a * h, 0.0))) / a
     t = np.where(w0 * w0 >= 2.0 * a * h, braking, np.where(wp <= w_max, free, capped)) + extra_t
     return np.where(np.asarray(gain_m) > 0, t, 0.0)
@@ -360,7 +368,7 @@ class PullUpLaw:
         limit = math.inf
         if cfg.speed_limit and not hover:
             ahead = considered & (along > 0.0)
-            entry = along[ahead] - np.sqrt(np.maximum(radius * radius - cross[ahead] ** 2, 0.0))
+            entry = entry_distance(along[ahead], cross[ahead], radius)
             limit = climb_speed_limit(entry, heights[ahead], alt, -v[2], cfg)
         if idx is None or not engaged:
             return AvoidanceCommand(cmd, w_nom, None, math.nan, math.nan, math.nan, False, unknown_left, holding, limit)
@@ -382,10 +390,7 @@ class PullUpLaw:
 def stopping_time(gain_m: float, accel: float, max_climb: float = math.inf) -> float:
     """Shortest time (s) to climb ``gain_m`` from level flight to level flight with acceleration
     ``+-accel`` and climb rate at most ``max_climb``: the time to go at which the law's bound for a
-    level vehicle is exactly zero. Times the horizontal speed (plus the miss distance) it is the
+    level vehicle is exactly zero (:func:`climb_time` from a climb rate of 0: ``2 sqrt(H/a)``, or
+    ``H/W + W/a`` at the climb limit). Times the horizontal speed (plus the miss distance) it is the
     stopping distance: an obstacle mapped at least that far ahead is cleared."""
-    if gain_m <= 0:
-        return 0.0
-    if max_climb * max_climb >= accel * gain_m:
-        return 2.0 * math.sqrt(gain_m / accel)
-    return gain_m / max_climb + max_climb / accel
+    return float(climb_time(np.array([float(gain_m)]), 0.0, accel, max_climb)[0])

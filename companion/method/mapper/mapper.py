@@ -413,7 +413,6 @@ class Mapper:
 
         updated_meas = match_idx[ok]  # measurement of each accepted update
         updated_ids = db.ids[updated].copy()  # before a retired feature's slot takes a new one
-        free_space = self._free_space(nav.t_s, pose.p_c, updated)
 
         # Confidence index: +1 matched, -1 visible but not matched (or refused).
         not_updated = np.ones(len(slots), dtype=bool)
@@ -425,12 +424,15 @@ class Mapper:
         # converged_max_depth_sigma_m. Before that, from floor_max_depth_sigma_m on, it bounds its
         # cell from below every frame (docs/mapper.md, "Bounds of an unconverged feature").
         y_upd, P_upd, R_upd, origin_upd = y_new[ok], P_new[ok], R_ref[point_idx[ok]], db.origin[updated]
+        X_upd = model.point(y_upd, R_upd)  # each updated feature's point, for both of its bounds
+        free_space = self._free_space(nav.t_s, pose.p_c, y_upd, P_upd, R_upd, origin_upd, X_upd)
         rel = model.relative_depth_sigma(y_upd, P_upd, R_upd, origin_upd)
         depth_sigma = rel * model.depth_from_origin(y_upd, R_upd, origin_upd)
         ready = (db.updates[updated] >= cfg.converge_min_updates) & (rel < cfg.converged_rel_depth_sigma)
         newly = ~db.converged[updated] & ready & (depth_sigma < cfg.converged_max_depth_sigma_m)
         bounding = ~db.converged[updated] & ~newly & ready & (depth_sigma < cfg.floor_max_depth_sigma_m)
-        floors = self._floors(nav.t_s, y_upd[bounding], P_upd[bounding], R_upd[bounding], origin_upd[bounding])
+        floors = self._floors(nav.t_s, y_upd[bounding], P_upd[bounding], R_upd[bounding], origin_upd[bounding],
+                              X_upd[bounding])
         if np.count_nonzero(newly):
             db.converged[updated[newly]] = True
             emitted.append(self._emitted_points(nav.t_s, updated[newly]))
@@ -502,17 +504,17 @@ class Mapper:
         )
 
     # ------------------------------------------------------------------------------------------
-    def _free_space(self, t_s: float, camera_ned: np.ndarray, slots: np.ndarray) -> FreeSpaceRays:
-        """The segments this frame saw through (docs/mapper.md, "Bounds of an unconverged feature"): from the camera
-        centre along each updated feature's line of sight, as far as the nearest the feature can be
-        at ``free_space_sigma`` sigma (the model's ``point_at_sigma``, taken as a range from the
-        camera and laid on the line of sight to the estimate, never beyond the estimate)."""
+    def _free_space(self, t_s: float, camera_ned: np.ndarray, y: np.ndarray, P: np.ndarray, R_ref: np.ndarray,
+                    origin: np.ndarray, X: np.ndarray) -> FreeSpaceRays:
+        """The segments this frame saw through (docs/mapper.md, "Bounds of an unconverged feature"):
+        from the camera centre along the line of sight of each feature (rows of y, P, R_ref, origin;
+        X its point), as far as the nearest the feature can be at ``free_space_sigma`` sigma (the
+        model's ``point_at_sigma``, taken as a range from the camera and laid on the line of sight to
+        the estimate, never beyond the estimate)."""
         k = self.cfg.free_space_sigma
-        if k <= 0 or len(slots) == 0:
+        if k <= 0 or len(y) == 0:
             return FreeSpaceRays(t_s, np.asarray(camera_ned, dtype=float), np.zeros((0, 3)))
-        db = self.db
-        X = self.model.point(db.y[slots], db.R_ref[slots])
-        near = self.model.point_at_sigma(db.y[slots], db.P[slots], db.R_ref[slots], db.origin[slots], k)
+        near = self.model.point_at_sigma(y, P, R_ref, origin, k)
         to_x = X - camera_ned
         r = np.sqrt((to_x * to_x).sum(axis=1))
         r_near = np.sqrt(((near - camera_ned) ** 2).sum(axis=1))
@@ -522,15 +524,17 @@ class Mapper:
         good = np.isfinite(ends).all(axis=1) & (reach > 0)
         return FreeSpaceRays(t_s, np.asarray(camera_ned, dtype=float).copy(), ends[good])
 
-    def _floors(self, t_s: float, y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin: np.ndarray) -> TerrainFloors:
+    def _floors(self, t_s: float, y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin: np.ndarray,
+                X: np.ndarray | None = None) -> TerrainFloors:
         """Lower bounds on the terrain's height (docs/mapper.md, "Bounds of an unconverged
         feature"): each feature (rows of y, P, R_ref, origin) lies on the terrain, so the terrain
         in its cell reaches at least the lower of its estimate and its point ``floor_sigma`` sigma
         farther along the line of sight (the far bound; for a line of sight looking down, the lower
-        end). Placed at the estimate's north and east."""
+        end). Placed at the estimate's north and east. ``X``: the features' points, when known."""
         if len(y) == 0:
             return TerrainFloors.empty(t_s)
-        X = self.model.point(y, R_ref)
+        if X is None:
+            X = self.model.point(y, R_ref)
         far = self.model.point_at_sigma(y, P, R_ref, origin, -self.cfg.floor_sigma)
         down = np.fmax(X[:, 2], far[:, 2])  # NED: the lower of the two (NaN far: at infinity, no bound)
         keep = np.isfinite(X).all(axis=1) & np.isfinite(far[:, 2])

@@ -242,6 +242,13 @@ class TerrainGrid:
             slots[missing] = new_slots
         return slots
 
+    def _pool_cells(self, north_m: np.ndarray, east_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The distinct cells holding positions (M,), as flat indices into the pool's layers, sorted,
+        and each position's index into them (creating the tiles that do not exist yet)."""
+        keys, local = self._cells(*self.cell_index(north_m, east_m))
+        uk, where = np.unique(keys, return_inverse=True)
+        return np.unique(self._ensure_tiles(uk)[where] * self._cells_per_tile + local, return_inverse=True)
+
     def _cells(self, ci: np.ndarray, cj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global cell indices -> (packed tile key, index inside the tile's flattened layers)."""
         t = self.tile_cells
@@ -462,12 +469,7 @@ class TerrainGrid:
         north = o[0] + frac * d_ne[ray, 0]
         east = o[1] + frac * d_ne[ray, 1]
         alt = -o[2] + frac * (o[2] - ends[ray, 2])
-        ci, cj = self.cell_index(north, east)
-        keys, local = self._cells(ci, cj)
-        uk, where = np.unique(keys, return_inverse=True)
-        slots = self._ensure_tiles(uk)[where]
-        flat = slots * self._cells_per_tile + local
-        cells, inv = np.unique(flat, return_inverse=True)
+        cells, inv = self._pool_cells(north, east)
         low = np.full(len(cells), np.inf)
         np.minimum.at(low, inv, alt)
         c_old = self._c.reshape(-1)[cells]
@@ -518,11 +520,7 @@ class TerrainGrid:
         pts = pts[good]
         if len(pts) == 0:
             return 0
-        ci, cj = self.cell_index(pts[:, 0], pts[:, 1])
-        keys, local = self._cells(ci, cj)
-        uk, where = np.unique(keys, return_inverse=True)
-        flat = self._ensure_tiles(uk)[where] * self._cells_per_tile + local
-        cells, inv = np.unique(flat, return_inverse=True)
+        cells, inv = self._pool_cells(pts[:, 0], pts[:, 1])
         high = np.full(len(cells), -np.inf)
         np.maximum.at(high, inv, -pts[:, 2])
         raised = high > self._f.reshape(-1)[cells]
