@@ -417,3 +417,56 @@ def test_a_late_obstacle_slows_the_vehicle_until_the_climb_fits():
     assert PullUpLaw(cfg).command([0.0, 0.5, -10.0], [6.0, 0.0, 0.0], mapped([])).speed_limit_mps == math.inf
     off = AvoidanceConfig(**{**{f: getattr(cfg, f) for f in cfg.__dataclass_fields__}, "speed_limit": False})
     assert PullUpLaw(off).command([0.0, 0.5, -10.0], [6.0, 0.0, 0.0], grid).speed_limit_mps == math.inf
+
+
+def test_the_highest_line_of_sight_follows_the_mount_and_the_attitude():
+    """The camera's highest line of sight ahead: the mount's pitch less the half field of view above
+    the optical axis (top row ``top_px`` in), plus the body's nose-down pitch; a camera that sees the
+    horizon has a negative depression."""
+    from companion.method.geometry import CameraMount, PinholeCamera, view_depression
+    cam = PinholeCamera(fx=625.3, fy=625.3, cx=319.5, cy=239.5, width=640, height=480)
+    half_up = math.atan2(239.5 - 8.0, 625.3)
+    level = np.eye(3)
+    down45 = CameraMount.from_euler_deg(0.0, -45.0, 0.0, (0.0, 0.0, 0.0))
+    assert view_depression(cam, down45, level, 8.0) == pytest.approx(math.radians(45.0) - half_up, abs=1e-9)
+    pitch = math.radians(-10.0)  # nose 10 deg down: body x turns towards NED down
+    R_nb = np.array([[math.cos(pitch), 0, math.sin(pitch)], [0, 1, 0], [-math.sin(pitch), 0, math.cos(pitch)]])
+    assert view_depression(cam, down45, R_nb, 8.0) == pytest.approx(math.radians(55.0) - half_up, abs=1e-9)
+    forward = CameraMount.from_euler_deg(0.0, -10.0, 0.0, (0.0, 0.0, 0.0))
+    assert view_depression(cam, forward, level, 8.0) < 0.0
+
+
+def test_the_view_limit_stops_the_vehicle_for_what_the_camera_has_not_seen():
+    """docs/avoidance.md, "What the camera can see": the top row looks 30 deg down, so terrain
+    (1 - s) h_c below the camera is in view D = (1 - s) h_c / tan 30 deg ahead; from the limit
+    speed the vehicle flies the latency and the reaction time, brakes at the configured rate and
+    stops exactly at the miss distance before D. Level or upward views, the option off and hovering
+    give no limit; the command's limit is the lesser of the view's and the map's."""
+    from companion.method.avoidance import view_distance, view_speed_limit
+    cfg = AvoidanceConfig(**{**{f: getattr(CFG, f) for f in CFG.__dataclass_fields__}, "speed_limit_shortfall": 0.1,
+                             "brake_accel_mps2": 2.0, "reaction_time_s": 0.5, "map_latency_s": 1.5})
+    dep = math.radians(30.0)
+    d = view_distance(dep, cfg)
+    assert d == pytest.approx(0.9 * cfg.clearance_m / math.tan(dep))
+    assert view_distance(0.0, cfg) == math.inf and view_distance(-0.1, cfg) == math.inf
+    v = view_speed_limit(d, cfg)
+    assert v * (0.5 + 1.5) + v * v / (2 * 2.0) == pytest.approx(d - cfg.miss_distance_m)
+    assert view_speed_limit(cfg.miss_distance_m - 1.0, cfg) == 0.0 and view_speed_limit(math.inf, cfg) == math.inf
+    # A steeper camera sees less far and so allows less speed.
+    assert view_speed_limit(view_distance(math.radians(40.0), cfg), cfg) < v
+
+    law = PullUpLaw(cfg)
+    flat = mapped([[n + 0.5, e + 0.5, 0.0] for n in range(0, 60) for e in range(-6, 6)])
+    cmd = law.command([0.0, 0.5, -cfg.nominal_alt_m], [6.0, 0.0, 0.0], flat, view_depression_rad=dep)
+    assert cmd.view_distance_m == pytest.approx(d) and cmd.view_speed_limit_mps == pytest.approx(v)
+    assert cmd.speed_limit_mps == pytest.approx(v) and not cmd.engaged
+    assert law.command([0.0, 0.5, -cfg.nominal_alt_m], [6.0, 0.0, 0.0], flat).speed_limit_mps == math.inf
+    hover = law.command([0.0, 0.5, -cfg.nominal_alt_m], [0.0, 0.0, 0.0], flat, view_depression_rad=dep)
+    assert hover.speed_limit_mps == math.inf
+    off = AvoidanceConfig(**{**{f: getattr(cfg, f) for f in cfg.__dataclass_fields__}, "view_speed_limit": False})
+    cmd_off = PullUpLaw(off).command([0.0, 0.5, -cfg.nominal_alt_m], [6.0, 0.0, 0.0], flat, view_depression_rad=dep)
+    assert cmd_off.speed_limit_mps == math.inf and cmd_off.view_distance_m == pytest.approx(d)
+    # A wall mapped near ahead limits harder than the view: the lesser limit stands.
+    wall = mapped([[n + 0.5, e + 0.5, 12.0] for n in range(6, 9) for e in range(-3, 3)])
+    near = law.command([0.0, 0.5, -10.0], [6.0, 0.0, 0.0], wall, view_depression_rad=dep)
+    assert near.speed_limit_mps < near.view_speed_limit_mps == pytest.approx(v)

@@ -211,13 +211,11 @@ def test_map_error_is_the_rmse_of_observed_cells_against_the_truth():
     assert math.isnan(report.map_error(hidden, box_terrain()).rmse_m)
 
 
-def test_first_detection_and_mapped_in_time():
+def test_first_detection():
     t = np.arange(10.0)
     h = np.array([np.nan, 0, 1, 3, 4.4, 4.6, 9, 2, 9, 9])
     assert report.first_detection_time(t, h, 4.5) == 5.0
     assert math.isnan(report.first_detection_time(t, h, 20.0))
-    assert report.mapped_in_time(5.0, 11.5, 6.0) and not report.mapped_in_time(5.0, 10.9, 6.0)
-    assert not report.mapped_in_time(math.nan, 10.0, 6.0)
 
 
 def test_lap_profile_samples_truth_and_map_along_the_path():
@@ -244,21 +242,30 @@ def test_height_over_flat_ground_leaves_out_samples_near_structures():
     assert np.isnan(report.height_over_flat_ground(np.zeros((0, 2)), np.zeros(0), box_terrain())[0])
 
 
-def test_criteria_judge_laps_mapped_in_time_and_compare_parameterisations():
-    laps = [dict(min_clearance_m=4.0, mapped_obstacle_height_m=6.0, mapped_in_time=False),
-            dict(min_clearance_m=12.5, mapped_obstacle_height_m=8.5, mapped_in_time=True),
-            dict(min_clearance_m=13.6, mapped_obstacle_height_m=8.8, mapped_in_time=True)]
-    cart = [dict(min_clearance_m=9.0, mapped_obstacle_height_m=6.0, mapped_in_time=True)]
-    v = report.criteria(laps, 15.0, 9.0, cart, roof_height_m=12.0)
-    assert v["laps_mapped_in_time"] == 2 and v["worst_clearance_mapped_in_time_m"] == 12.5
+def test_criteria_judge_every_lap_and_compare_parameterisations():
+    laps = [dict(min_clearance_m=12.5, mapped_obstacle_height_m=8.5, cruise_height_over_flat_m=15.4),
+            dict(min_clearance_m=13.6, mapped_obstacle_height_m=8.6, cruise_height_over_flat_m=15.9),
+            dict(min_clearance_m=14.0, mapped_obstacle_height_m=8.8, cruise_height_over_flat_m=15.2)]
+    cart = [dict(min_clearance_m=9.0, mapped_obstacle_height_m=6.0)]
+    v = report.criteria(laps, 15.0, 9.0, cart, roof_height_m=12.0, nominal_alt_m=15.0)
+    assert v["laps_judged"] == 3 and v["worst_clearance_m"] == 12.5
+    assert v["first_lap_clearance_ratio"] == pytest.approx(12.5 / 15.0)
     assert v["issue_clearance_ok"] and not v["goal_clearance_ok"]          # 12.5 >= 12 but < 13.5
+    assert v["flat_excess_m"] == pytest.approx(0.9) and v["goal_flat_height_ok"]
     assert v["issue_height_ok"] and v["goal_height_ok"] and v["maps_better_than_other"]
     assert v["height_fraction_of_roof_last_lap"] == pytest.approx(8.8 / 12.0)
+    # The first pass counts like any other: a low first lap fails the run whatever follows.
+    low_first = [dict(laps[0], min_clearance_m=11.9)] + laps[1:]
+    assert not report.criteria(low_first, 15.0, 9.0)["issue_clearance_ok"]
+    # A lap that never crossed the obstacle (no clearance figure) fails too, and so does flying high.
+    assert not report.criteria(laps[:2] + [dict(laps[2], min_clearance_m=None)], 15.0, 9.0)["issue_clearance_ok"]
+    high = report.criteria(laps[:2] + [dict(laps[2], cruise_height_over_flat_m=16.2)], 15.0, 9.0, nominal_alt_m=15.0)
+    assert high["flat_excess_m"] == pytest.approx(1.2) and not high["goal_flat_height_ok"]
+    assert math.isnan(report.criteria(laps, 15.0, 9.0)["flat_excess_m"])   # no nominal altitude given
     tall = report.criteria(laps[:2] + [dict(laps[2], mapped_obstacle_height_m=31.0)], 15.0, 9.0, cart)
     assert not tall["issue_height_ok"] and not tall["goal_height_ok"] and not tall["maps_better_than_other"]
-    assert not report.criteria(laps[:1], 15.0, 9.0)["issue_clearance_ok"]   # nothing mapped in time: not shown
     # The comparison averages the laps: a baseline that catches up by the last lap still maps worse.
-    assert v["mean_height_error_m"] == pytest.approx((3.0 + 0.5 + 0.2) / 3)
+    assert v["mean_height_error_m"] == pytest.approx((0.5 + 0.4 + 0.2) / 3)
     late = [dict(lap, mapped_obstacle_height_m=h) for lap, h in zip(laps, (None, 7.0, 8.9))]
     assert report.mean_height_error(late, 9.0) == pytest.approx((9.0 + 2.0 + 0.1) / 3)
     assert report.criteria(laps, 15.0, 9.0, late)["maps_better_than_other"]
@@ -331,7 +338,8 @@ def _figures(m):
         for lap in run["laps"]:
             print(f"  {p:13s} lap {lap['lap']}: mapped height {lap['mapped_obstacle_height_m']} m "
                   f"(textured {m['obstacle_textured_height_m']} m), min clearance {lap['min_clearance_m']} m "
-                  f"(configured {m['clearance_m']} m), mapped in time: {lap['mapped_in_time']}")
+                  f"(configured {m['clearance_m']} m), warning {lap['warning_s']} s (smooth climb: {m['warning_needed_s']} s), "
+                  f"height over flat ground {lap['cruise_height_over_flat_m']} m")
         print(f"  {p:13s} map RMSE {run['map_rmse_m']} m over {run['map_error']['cells']} cells; "
               f"frames {run['frames_mapped']}/{run['frames']} mapped ({run['frames_dropped']} dropped)")
 
@@ -379,20 +387,25 @@ def test_demo_closed_loop_run_writes_its_report(closed_loop_run):
 
 @pytest.mark.slow
 def test_demo_meets_its_criteria(closed_loop_run):
-    """Once the building is mapped (in time for the law to climb), clearance stays at or above 0.8
-    of the configured clearance; the mapped building height (last lap) is within 20 % of its
-    textured height. Three laps, as the paper's goal (90 % of the height by lap 3), because two are
-    not enough: after two laps the height was 7.2-7.7 m against the 7.2 m bound in six of seven runs
-    and 7.17 m in the seventh; after three, 8.1 and 8.8 m in two runs."""
+    """Every lap, the first included, keeps at least 0.8 of the configured clearance over the
+    building; the mapped building height (last lap) is within 20 % of its textured height. Three
+    laps, as the paper's goal (90 % of the height by lap 3), because two are not enough: after two
+    laps the height was 7.2-7.7 m against the 7.2 m bound in six of seven runs and 7.17 m in the
+    seventh; after three, 8.1 and 8.8 m in two runs. The goals (0.9 of the clearance, the height
+    over flat ground within 1 m of the nominal altitude) are printed, and the scenario suite
+    (docs/quality.md) measures them on every scenario."""
     m = closed_loop_run.metrics
     assert m is not None, closed_loop_run.proc.stderr[-2000:]
     _figures(m)
     h_c, textured = m["clearance_m"], m["obstacle_textured_height_m"]
     inv = m["runs"]["inverse_depth"]
-    judged = [lap for lap in inv["laps"] if lap["mapped_in_time"]]
-    assert judged, "the building was never in the map early enough for the law to act"
-    for lap in judged:
+    verdict = m["criteria"]["inverse_depth"]
+    print(f"  goals: clearance ratio {verdict['clearance_ratio']} (0.9: {verdict['goal_clearance_ok']}), "
+          f"flat excess {verdict['flat_excess_m']} m (1.0: {verdict['goal_flat_height_ok']})")
+    assert verdict["laps_judged"] == CLOSED_LOOP_LAPS
+    for lap in inv["laps"]:
         assert lap["min_clearance_m"] >= 0.8 * h_c, f"lap {lap['lap']}: clearance {lap['min_clearance_m']} m"
+    assert verdict["issue_clearance_ok"]
     height = inv["laps"][-1]["mapped_obstacle_height_m"]
     assert abs(height - textured) <= 0.2 * textured, f"mapped {height} m vs textured {textured} m"
 

@@ -357,15 +357,6 @@ def height_over_flat_ground(ne: np.ndarray, alt_m: np.ndarray, terrain_fn: Terra
     return float(np.median(alt[flat] - here[flat])), int(flat.sum())
 
 
-def mapped_in_time(detected_t_s: float, crossing_t_s: float, needed_s: float) -> bool:
-    """Was the obstacle in the map early enough? ``detected`` at least ``needed_s`` (the law's
-    time to climb from the nominal altitude to the obstacle plus clearance,
-    ``companion.method.avoidance.stopping_time``) before the vehicle reached its footprint. A camera
-    pitched 45 deg down at 15 m sees the foot of a wall about 34 m ahead, under 6 s at 6 m/s: the
-    first pass over an unmapped building cannot keep the whole clearance, later passes must."""
-    return bool(math.isfinite(detected_t_s) and math.isfinite(crossing_t_s) and crossing_t_s - detected_t_s >= needed_s)
-
-
 def first_detection_time(t_s: np.ndarray, mapped_m: np.ndarray, threshold_m: float) -> float:
     """First time the mapped obstacle height reached ``threshold_m`` (NaN values never count);
     NaN when it never did. t_s, mapped_m (N,) in time order."""
@@ -454,14 +445,20 @@ def lap_profile(ne: np.ndarray, alt_m: np.ndarray, terrain_fn: TerrainFn, raster
 # --------------------------------------------------------------------------------------------
 
 
-def criteria(laps: list[dict], clearance_m: float, textured_height_m: float, other_laps: list[dict] | None = None,
-             roof_height_m: float = math.nan) -> dict:
-    """The demo's criteria and the paper's checks on one run's laps (dicts as the demo writes them:
-    ``min_clearance_m``, ``mapped_obstacle_height_m``, ``mapped_in_time``).
+CLEARANCE_REQUIRED, CLEARANCE_GOAL = 0.8, 0.9   # of the configured clearance, on every lap
+FLAT_EXCESS_GOAL_M = 1.0                        # median height over flat ground above the nominal altitude
 
-    * clearance: every lap in which the obstacle was already mapped in time (early enough for
-      the law to climb over it, see :func:`mapped_in_time`) keeps at least 0.8 (required, the ``issue_*`` keys) / 0.9
-      (goal) of ``clearance_m``;
+
+def criteria(laps: list[dict], clearance_m: float, textured_height_m: float, other_laps: list[dict] | None = None,
+             roof_height_m: float = math.nan, nominal_alt_m: float = math.nan) -> dict:
+    """The demo's criteria and the paper's checks on one run's laps (dicts as the demo writes them:
+    ``min_clearance_m``, ``mapped_obstacle_height_m``, ``cruise_height_over_flat_m``).
+
+    * clearance: every lap, the first included, keeps at least 0.8 (required, the ``issue_*`` keys)
+      / 0.9 (goal) of ``clearance_m`` over the obstacle; a lap without a crossing fails (the
+      vehicle never flew over it);
+    * height over flat ground: the worst lap's median height over flat ground is within
+      ``FLAT_EXCESS_GOAL_M`` of ``nominal_alt_m`` (goal);
     * height: the last lap's mapped height is within 20 % of the textured height (required), and
       at least 90 % of it while still within the 20 % criterion (goal; the paper's map reached
       about 75 % of its roof height, which was about its textured height);
@@ -474,15 +471,22 @@ def criteria(laps: list[dict], clearance_m: float, textured_height_m: float, oth
     def last(key):
         return laps[-1].get(key, math.nan) if laps else math.nan
 
-    after = [lap["min_clearance_m"] for lap in laps if lap.get("mapped_in_time")]
-    worst = min(after) if after else math.nan
+    clear = np.array([_finite_or_nan(lap.get("min_clearance_m")) for lap in laps], float)
+    worst = float(np.min(clear)) if len(clear) and np.isfinite(clear).all() else math.nan
+    ratio = worst / clearance_m if clearance_m > 0 else math.nan
+    first = float(clear[0]) / clearance_m if len(clear) and clearance_m > 0 else math.nan
+    flat = np.array([_finite_or_nan(lap.get("cruise_height_over_flat_m")) for lap in laps], float)
+    excess = float(np.max(flat)) - nominal_alt_m if len(flat) and np.isfinite(flat).all() else math.nan
     height = last("mapped_obstacle_height_m")
     out = {
-        "laps_mapped_in_time": len(after),
-        "worst_clearance_mapped_in_time_m": worst,
-        "clearance_ratio_mapped_in_time": worst / clearance_m if clearance_m > 0 else math.nan,
-        "issue_clearance_ok": bool(after) and worst >= 0.8 * clearance_m,
-        "goal_clearance_ok": bool(after) and worst >= 0.9 * clearance_m,
+        "laps_judged": len(laps),
+        "worst_clearance_m": worst,
+        "clearance_ratio": ratio,
+        "first_lap_clearance_ratio": first,
+        "issue_clearance_ok": bool(np.isfinite(ratio)) and ratio >= CLEARANCE_REQUIRED,
+        "goal_clearance_ok": bool(np.isfinite(ratio)) and ratio >= CLEARANCE_GOAL,
+        "flat_excess_m": excess,
+        "goal_flat_height_ok": bool(np.isfinite(excess)) and abs(excess) <= FLAT_EXCESS_GOAL_M,
         "height_ratio_last_lap": height / textured_height_m if textured_height_m > 0 else math.nan,
         "issue_height_ok": bool(np.isfinite(height)) and abs(height - textured_height_m) <= 0.2 * textured_height_m,
         "goal_height_ok": bool(np.isfinite(height)) and 0.9 * textured_height_m <= height <= 1.2 * textured_height_m,
@@ -495,6 +499,10 @@ def criteria(laps: list[dict], clearance_m: float, textured_height_m: float, oth
         out["other_mean_height_error_m"] = other_err
         out["maps_better_than_other"] = bool(np.isfinite(err)) and (not np.isfinite(other_err) or err < other_err)
     return out
+
+
+def _finite_or_nan(x) -> float:
+    return float(x) if x is not None and math.isfinite(float(x)) else math.nan
 
 
 def mean_height_error(laps: list[dict], textured_height_m: float) -> float:

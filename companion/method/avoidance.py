@@ -15,7 +15,8 @@ Functions in derivation order: :func:`time_to_go` (Delta t_i), :func:`height_res
 (eq. 18), :func:`minimum_climb_rate` (eqs. 19-20 completed with the push-over and the climb-rate
 limit), :func:`nominal_climb_rate` (return to the nominal altitude), :func:`margin_height` (a cell
 as high as its estimate plus k sigma), :func:`fill_unknown`, :func:`law_heights`, the speed limit for a late obstacle
-(:func:`climb_time`, :func:`brake_speed`, :func:`climb_speed_limit`), then :class:`PullUpLaw`.
+(:func:`climb_time`, :func:`brake_speed`, :func:`climb_speed_limit`), the speed limit for what the
+camera cannot see yet (:func:`view_distance`, :func:`view_speed_limit`), then :class:`PullUpLaw`.
 """
 
 from __future__ import annotations
@@ -119,8 +120,13 @@ class AvoidanceCommand:
     engaged: an obstacle demands more than the nominal command.
     unknown_cells_ahead: corridor cells with no evidence and no mapped cell near enough to stand in.
     holding_over_unknown: a descent held because the ground below is unseen.
-    speed_limit_mps: the horizontal speed at which the law still clears the mapped terrain ahead
-        (:func:`climb_speed_limit`; inf: none, or ``speed_limit`` off, or hovering).
+    speed_limit_mps: the horizontal speed the vehicle must not exceed: the least of
+        :func:`climb_speed_limit` (mapped terrain ahead) and :func:`view_speed_limit` (inf: none,
+        both off, or hovering).
+    view_distance_m: how far ahead the camera sees all terrain that would need a climb
+        (:func:`view_distance`; inf: the view reaches the horizon, or unknown).
+    view_speed_limit_mps: the speed at which terrain first seen ``view_distance_m`` ahead can still
+        be stopped for (:func:`view_speed_limit`; inf: none, off, or hovering).
     """
 
     climb_rate_mps: float
@@ -133,6 +139,8 @@ class AvoidanceCommand:
     unknown_cells_ahead: int
     holding_over_unknown: bool = False
     speed_limit_mps: float = math.inf
+    view_distance_m: float = math.inf
+    view_speed_limit_mps: float = math.inf
 
 
 def ground_below(grid: TerrainGrid, position_ne: np.ndarray, radius_m: float,
@@ -289,6 +297,31 @@ def climb_speed_limit(entry_m: np.ndarray, height_m: np.ndarray, alt_m: float, c
     return float(np.min(np.maximum(by_climb, brake_speed(d, cfg.brake_accel_mps2, cfg.reaction_time_s))))
 
 
+def view_distance(depression_rad: float, cfg: AvoidanceConfig) -> float:
+    """How far ahead (m, horizontally from the camera) the camera sees every terrain point high
+    enough to need a climb (docs/avoidance.md, "What the camera can see"). The image's top row looks
+    ``depression_rad`` below the horizontal, so at a distance d the camera sees terrain only up to
+    ``h_cam - d tan(depression)``; terrain that needs a climb reaches above
+    ``h - (1 - speed_limit_shortfall) h_c``, all of it in view while
+    ``d <= (1 - s) h_c / tan(depression)``. inf when the top row looks level or up (NaN: unknown)."""
+    if not math.isfinite(depression_rad) or depression_rad <= 0.0:
+        return math.inf
+    return cfg.clearance_m * (1.0 - cfg.speed_limit_shortfall) / math.tan(min(depression_rad, 0.5 * math.pi - 1e-9))
+
+
+def view_speed_limit(view_distance_m: float, cfg: AvoidanceConfig) -> float:
+    """The highest speed (m/s) from which terrain first seen ``view_distance_m`` ahead can still be
+    stopped for (docs/avoidance.md, "What the camera can see"): the map holds it ``map_latency_s``
+    after it enters the view, the vehicle flies on for ``reaction_time_s``, then brakes at
+    ``brake_accel_mps2`` and must stop before it comes within the miss distance:
+    :func:`brake_speed` of ``view_distance_m - miss_distance_m`` with the latency added to the
+    reaction time. inf for an infinite distance; 0 when the camera sees less than the miss distance."""
+    if not math.isfinite(view_distance_m):
+        return math.inf
+    return float(brake_speed(np.array([view_distance_m - cfg.miss_distance_m]), cfg.brake_accel_mps2,
+                             cfg.reaction_time_s + cfg.map_latency_s)[0])
+
+
 class PullUpLaw:
     """The avoidance law of seed 000, section III, on a :class:`TerrainGrid`."""
 
@@ -297,12 +330,15 @@ class PullUpLaw:
 
     def command(
         self, position_ned, velocity_ned, grid: TerrainGrid, nominal_alt_m: float | None = None,
-        direction_ne=None,
+        direction_ne=None, view_depression_rad: float | None = None,
     ) -> AvoidanceCommand:
         """Climb-rate command for a vehicle at ``position_ned`` (3,) moving at ``velocity_ned`` (3,).
         ``direction_ne`` (2,): the direction the vehicle means to fly (its route's leg), along which
         the corridor looks, at the speed over ground in that direction; None = along the velocity
         (below ``hover_speed_mps`` the look-ahead is then a disc around the vehicle).
+        ``view_depression_rad``: how far below the horizontal the camera's highest line of sight
+        ahead looks (:func:`companion.method.geometry.view_depression`); None = unknown: no view
+        limit.
 
         ValueError on non-finite state (the caller must not command on it)."""
         cfg = self.cfg
@@ -370,8 +406,14 @@ class PullUpLaw:
             ahead = considered & (along > 0.0)
             entry = entry_distance(along[ahead], cross[ahead], radius)
             limit = climb_speed_limit(entry, heights[ahead], alt, -v[2], cfg)
+        view_m = math.inf if view_depression_rad is None else view_distance(view_depression_rad, cfg)
+        view_limit = math.inf
+        if cfg.view_speed_limit and not hover:
+            view_limit = view_speed_limit(view_m, cfg)
+            limit = min(limit, view_limit)
         if idx is None or not engaged:
-            return AvoidanceCommand(cmd, w_nom, None, math.nan, math.nan, math.nan, False, unknown_left, holding, limit)
+            return AvoidanceCommand(cmd, w_nom, None, math.nan, math.nan, math.nan, False, unknown_left, holding, limit,
+                                    view_m, view_limit)
         h_i = float(heights[idx])
         return AvoidanceCommand(
             climb_rate_mps=cmd,
@@ -384,6 +426,8 @@ class PullUpLaw:
             unknown_cells_ahead=unknown_left,
             holding_over_unknown=holding,
             speed_limit_mps=limit,
+            view_distance_m=view_m,
+            view_speed_limit_mps=view_limit,
         )
 
 

@@ -11,8 +11,9 @@ One decision:
   ``avoidance.enabled`` false the nominal-altitude command alone (the law is still evaluated, and
   published, so an operator sees what it would have done);
 * horizontal: the waypoint guidance along ``control.waypoints_ne_m`` at ``control.cruise_speed_mps``
-  when a route is configured, slowed to the law's speed limit for mapped terrain it cannot climb
-  over in time, else the vehicle's own horizontal velocity (advisory use);
+  when a route is configured, slowed to the law's speed limits (mapped terrain it cannot climb over
+  in time; terrain the camera cannot see yet), else the vehicle's own horizontal velocity
+  (advisory use);
 * below ``control.min_alt_m`` nothing is to be sent: take-off and landing belong to the autopilot,
   and a velocity setpoint would cancel them.
 """
@@ -24,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.method.avoidance import AvoidanceCommand, PullUpLaw
+from companion.method.geometry import camera_from_config, view_depression
 from companion.config import CompanionConfig
 from companion.method.guidance import WaypointGuidance
 from companion.method.messages import NavState
@@ -58,6 +60,7 @@ class Controller:
             WaypointGuidance(cfg.control.waypoints_ne_m, cfg.control.cruise_speed_mps)
             if len(cfg.control.waypoints_ne_m) >= 2 else None
         )
+        self._camera, self._mount = camera_from_config(cfg.camera)
         self._climb_sent: float | None = None  # the last climb-rate setpoint sent, and its time
         self._climb_t = 0.0
 
@@ -92,9 +95,13 @@ class Controller:
             intent = horizontal  # the law looks along the leg the vehicle is turning onto
         else:
             horizontal = np.asarray(nav.velocity_ned_mps, dtype=float)[:2]
-        cmd = self.law.command(nav.position_ned_m, nav.velocity_ned_mps, grid, direction_ne=intent)
+        # How far below the horizontal the camera's highest line of sight looks, at this attitude.
+        depression = view_depression(self._camera, self._mount, nav.R_nb, self.cfg.camera.border_px)
+        cmd = self.law.command(nav.position_ned_m, nav.velocity_ned_mps, grid, direction_ne=intent,
+                               view_depression_rad=depression)
         if self.guidance is not None and a.enabled:
-            # Never faster than the law can clear the mapped terrain ahead at (docs/avoidance.md).
+            # Never faster than the law can clear the mapped terrain ahead at, nor than lets the
+            # vehicle stop for terrain the camera has not seen yet (docs/avoidance.md).
             speed = float(np.hypot(horizontal[0], horizontal[1]))
             if speed > cmd.speed_limit_mps:
                 horizontal = horizontal * (cmd.speed_limit_mps / speed)

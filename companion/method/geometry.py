@@ -229,6 +229,18 @@ class PinholeCamera:
         return float(np.degrees(2 * np.arctan2(self.height / 2, self.fy)))
 
 
+def view_depression(camera: PinholeCamera, mount: CameraMount, R_nb: np.ndarray, top_px: float = 0.0) -> float:
+    """Angle (rad) below the horizontal of the camera's line of sight through the middle of the
+    image's top row (``top_px`` rows in: features nearer the edge are not used) with the body at
+    attitude ``R_nb`` (3, 3): the highest line of sight the camera has ahead, so the highest
+    terrain it can see at a distance d is ``d tan(angle)`` below it (docs/avoidance.md, "What the
+    camera can see"). Negative when that line looks up. A multirotor flying forward pitches its
+    nose, and a fixed camera with it, down: the attitude counts."""
+    d_cam = camera.ray(np.array([camera.cx, float(top_px)]))
+    d_ned = np.asarray(R_nb, dtype=float) @ (mount.R_bc @ d_cam)
+    return float(np.arcsin(np.clip(d_ned[2] / np.linalg.norm(d_ned), -1.0, 1.0)))
+
+
 def camera_from_config(cam) -> tuple[PinholeCamera, CameraMount]:
     """Build the camera model and mount from a :class:`companion.config.CameraConfig`."""
     model = PinholeCamera(

@@ -129,6 +129,11 @@ class FrameQueue:
             self._cond.notify_all()
 
 
+def _finite_or_none(x: float, digits: int = 3) -> float | None:
+    """A number for the status JSON: None for inf/NaN (no limit, unknown)."""
+    return round(float(x), digits) if math.isfinite(x) else None
+
+
 def frame_status(origin, flavour: str) -> dict[str, Any]:
     """Where the map's local frame lies on the Earth (docs/zenoh.md, "Status"; companion/method/geodesy.py):
     the EKF origin as the autopilot reported it, and the autopilot's mapping between local offsets
@@ -505,6 +510,8 @@ class Daemon:
             "nominal_climb_mps": num(cmd.nominal_climb_mps),
             "unknown_cells_ahead": int(cmd.unknown_cells_ahead),
             "speed_limit_mps": num(cmd.speed_limit_mps),
+            "view_distance_m": num(cmd.view_distance_m),
+            "view_speed_limit_mps": num(cmd.view_speed_limit_mps),
             "setpoint_velocity_ned_mps": [round(float(v), 3) for v in velocity],
             "reason": self.command_state,
         }
@@ -566,6 +573,9 @@ class Daemon:
             "frame": frame_status(self.link.assembler.origin, self.link.flavour),
             "avoidance": None if self.last_command is None else {
                 "engaged": self.last_command.engaged, "climb_rate_mps": round(self.last_command.climb_rate_mps, 3),
+                "speed_limit_mps": _finite_or_none(self.last_command.speed_limit_mps),
+                "view_distance_m": _finite_or_none(self.last_command.view_distance_m),
+                "view_speed_limit_mps": _finite_or_none(self.last_command.view_speed_limit_mps),
             },
             "control": {
                 "rate_hz": self.cfg.control.rate_hz, "ticks": self.control_ticks,

@@ -67,7 +67,6 @@ def run_metrics(rec: RunRecord, world, obstacle, clearance_m: float) -> dict[str
             "mapped_before_crossing": bool(np.isfinite(detected_t) and np.isfinite(crossing.entered_t_s)
                                            and detected_t <= crossing.entered_t_s),
             "warning_s": _num(crossing.entered_t_s - detected_t, 2),
-            "mapped_in_time": report.mapped_in_time(detected_t, crossing.entered_t_s, needed_s),
             "max_alt_m": _num(np.max(alt[sl])),
             "max_height_above_terrain_m": _num(np.max(agl)),
             "cruise_height_over_flat_m": _num(report.height_over_flat_ground(ne[sl], alt[sl], world.terrain_height)[0]),
@@ -177,7 +176,8 @@ def build_metrics(records: dict[str, RunRecord], world, obstacle, opts, wall_s: 
                                                  for lap in other_laps]
         verdicts[p] = {k: (_num(v) if isinstance(v, float) else v)
                        for k, v in report.criteria(laps, clearance, obstacle.textured_height_m, olaps,
-                                                                 float(obstacle.height_m)).items()}
+                                                   float(obstacle.height_m),
+                                                   float(world.circuit.altitude_agl_m)).items()}
     return {
         "schema": "companion.demo/1",
         "clearance_m": clearance,
@@ -195,8 +195,9 @@ def build_metrics(records: dict[str, RunRecord], world, obstacle, opts, wall_s: 
             "mapped_obstacle_height_m": "95th percentile of the mapped heights of the footprint cells (grown by one cell) "
                                         "holding >= 2 points, in the ground station's map at the lap's end",
             "first_detection_t_s": f"first time the mapped obstacle height reached {DETECTION_FRACTION:g} x the textured height",
-            "mapped_in_time": "first detection at least warning_needed_s before the lap's crossing (the law's time to climb "
-                              "from the nominal altitude to textured height + clearance); the clearance criteria judge these laps",
+            "warning_s": "the lap's crossing minus the first detection: at least warning_needed_s (the law's time to climb "
+                         "from the nominal altitude to textured height + clearance) lets the law climb smoothly; every lap is "
+                         "judged for clearance whatever its warning",
             "map_rmse_m": "RMSE of every observed cell of the final map against the scenario's true heights at cell centres",
             "laps": f"cut where the true trajectory comes back within {LAP_RADIUS_M:g} m of the first waypoint after the others",
         },
