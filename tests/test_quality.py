@@ -154,6 +154,38 @@ def test_the_daemon_and_the_engine_share_the_control_decision():
     assert daemon.Controller is Controller
 
 
+def test_the_view_limit_averages_the_cameras_line_of_sight():
+    """The view limit takes the camera's line of sight averaged over view_smoothing_s (first order):
+    a multirotor's nose goes down to speed up and up to brake, and the attitude of the moment would
+    feed the limit's own effect back into it. A pitch held for one control step moves the average
+    by dt / (tau + dt) of the step; after a gap of more than a second it starts afresh."""
+    from companion.method.avoidance import view_distance
+    from companion.method.geometry import camera_from_config, view_depression
+    world = World.from_dict(WORLD, "known.yaml")
+    cfg = flight_config(world, "known.yaml", "inverse_depth", 1, 15.0)
+    grid = TerrainGrid.from_config(cfg.terrain)
+    cam, mount = camera_from_config(cfg.camera)
+    pitch = math.radians(-20.0)  # nose 20 deg down
+    q_down = np.array([math.cos(pitch / 2), 0.0, math.sin(pitch / 2), 0.0])
+    level = NavState(t_s=1.0, position_ned_m=np.array([0.0, 0.0, -10.0]), velocity_ned_mps=np.array([5.0, 0.0, 0.0]),
+                     quaternion_wxyz=np.array([1.0, 0.0, 0.0, 0.0]), covariance=np.eye(9) * 0.01)
+    down = replace(level, t_s=1.05, quaternion_wxyz=q_down)
+    d_level = view_depression(cam, mount, level.R_nb, cfg.camera.border_px)
+    d_down = view_depression(cam, mount, down.R_nb, cfg.camera.border_px)
+    assert d_down == pytest.approx(d_level + math.radians(20.0))
+    ctl = Controller(cfg)
+    ctl.decide(level, grid)
+    step = ctl.decide(down, grid)
+    tau = cfg.avoidance.view_smoothing_s
+    expected = d_level + (d_down - d_level) * 0.05 / (tau + 0.05)
+    assert step.command.view_distance_m == pytest.approx(view_distance(expected, cfg.avoidance))
+    later = ctl.decide(replace(down, t_s=3.0), grid)  # 1.95 s later: afresh, the attitude of the moment
+    assert later.command.view_distance_m == pytest.approx(view_distance(d_down, cfg.avoidance))
+    instant = Controller(replace(cfg, **{"avoidance.view_smoothing_s": 0.0}))
+    instant.decide(level, grid)
+    assert instant.decide(down, grid).command.view_distance_m == pytest.approx(view_distance(d_down, cfg.avoidance))
+
+
 def test_the_climb_setpoint_moves_no_faster_than_its_slew_limits():
     """A wall appears ahead between two ticks: the law's bound jumps; the setpoint rises by at most
     command_climb_accel_mps2 dt a tick and, once the wall is gone, falls by at most accel_mps2 dt."""

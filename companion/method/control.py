@@ -61,6 +61,8 @@ class Controller:
             if len(cfg.control.waypoints_ne_m) >= 2 else None
         )
         self._camera, self._mount = camera_from_config(cfg.camera)
+        self._depression: float | None = None  # the camera's highest line of sight, averaged (rad)
+        self._depression_t = 0.0
         self._climb_sent: float | None = None  # the last climb-rate setpoint sent, and its time
         self._climb_t = 0.0
 
@@ -77,6 +79,19 @@ class Controller:
             climb = min(max(climb, last - a.accel_mps2 * dt), last + a.command_climb_accel_mps2 * dt)
         self._climb_sent, self._climb_t = (climb if sending else None), t_s
         return climb
+
+    def _view_depression(self, nav: NavState) -> float:
+        """How far below the horizontal the camera's highest line of sight looks, averaged over
+        ``avoidance.view_smoothing_s`` (first order, in the navigation's time; docs/avoidance.md,
+        "What the camera can see"). The attitude of the moment would close a loop: the limit slows
+        the vehicle, it pitches its nose up to brake, the camera sees farther, the limit rises, it
+        pitches down to speed up, and so on. Starts afresh after a gap of more than a second."""
+        now = view_depression(self._camera, self._mount, nav.R_nb, self.cfg.camera.border_px)
+        tau, last, dt = self.cfg.avoidance.view_smoothing_s, self._depression, nav.t_s - self._depression_t
+        if last is not None and tau > 0.0 and 0.0 <= dt <= 1.0:
+            now = last + (now - last) * dt / (tau + dt)
+        self._depression, self._depression_t = now, nav.t_s
+        return now
 
     @property
     def lap(self) -> int:
@@ -95,10 +110,8 @@ class Controller:
             intent = horizontal  # the law looks along the leg the vehicle is turning onto
         else:
             horizontal = np.asarray(nav.velocity_ned_mps, dtype=float)[:2]
-        # How far below the horizontal the camera's highest line of sight looks, at this attitude.
-        depression = view_depression(self._camera, self._mount, nav.R_nb, self.cfg.camera.border_px)
         cmd = self.law.command(nav.position_ned_m, nav.velocity_ned_mps, grid, direction_ne=intent,
-                               view_depression_rad=depression)
+                               view_depression_rad=self._view_depression(nav))
         if self.guidance is not None and a.enabled:
             # Never faster than the law can clear the mapped terrain ahead at, nor than lets the
             # vehicle stop for terrain the camera has not seen yet (docs/avoidance.md).
