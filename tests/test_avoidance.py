@@ -470,3 +470,21 @@ def test_the_view_limit_stops_the_vehicle_for_what_the_camera_has_not_seen():
     wall = mapped([[n + 0.5, e + 0.5, 12.0] for n in range(6, 9) for e in range(-3, 3)])
     near = law.command([0.0, 0.5, -10.0], [6.0, 0.0, 0.0], wall, view_depression_rad=dep)
     assert near.speed_limit_mps < near.view_speed_limit_mps == pytest.approx(v)
+
+
+def test_the_operator_learns_what_the_mount_allows_in_level_flight():
+    """What the daemon warns about at start: the view limit of the configured mount with the body
+    level. The default 45 deg mount sees the heights that matter 29 m ahead and allows 6.7 m/s; a
+    camera looking straight down sees nothing ahead and allows nothing; one looking 10 deg down sees
+    the horizon and sets no limit."""
+    from companion.config import CompanionConfig, replace
+    from companion.method.avoidance import view_distance, view_speed_limit
+    from companion.method.control import level_flight_view_limit
+    cfg = CompanionConfig()
+    d, v = level_flight_view_limit(cfg)
+    dep = math.radians(-cfg.camera.mount_pitch_deg) - math.atan2(cfg.camera.cy - cfg.camera.border_px, cfg.camera.fy)
+    assert d == pytest.approx(view_distance(dep, cfg.avoidance)) and v == pytest.approx(view_speed_limit(d, cfg.avoidance))
+    assert 6.0 < v < 7.0
+    d_nadir, v_nadir = level_flight_view_limit(replace(cfg, **{"camera.mount_pitch_deg": -90.0}))
+    assert d_nadir < cfg.avoidance.miss_distance_m and v_nadir == 0.0
+    assert level_flight_view_limit(replace(cfg, **{"camera.mount_pitch_deg": -10.0})) == (math.inf, math.inf)

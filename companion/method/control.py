@@ -24,12 +24,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.method.avoidance import AvoidanceCommand, PullUpLaw
+from companion.method.avoidance import AvoidanceCommand, PullUpLaw, view_distance, view_speed_limit
 from companion.method.geometry import camera_from_config, view_depression
 from companion.config import CompanionConfig
 from companion.method.guidance import WaypointGuidance
 from companion.method.messages import NavState
 from companion.method.terrain.grid import TerrainGrid
+
+
+def level_flight_view_limit(cfg: CompanionConfig) -> tuple[float, float]:
+    """(view distance m, view speed limit m/s) of the configured camera mount with the body level
+    (docs/avoidance.md, "What the camera can see"): the most the view limit allows, since flying
+    forward pitches the nose, and the camera, further down. An operator whose route's speed is above
+    it will see the vehicle fly slower; a camera looking straight down sees no terrain ahead at all
+    and allows no speed (set ``avoidance.view_speed_limit: false`` for a nadir survey camera)."""
+    camera, mount = camera_from_config(cfg.camera)
+    depression = view_depression(camera, mount, np.eye(3), cfg.camera.border_px)
+    distance = view_distance(depression, cfg.avoidance)
+    return distance, view_speed_limit(distance, cfg.avoidance)
 
 
 @dataclass(frozen=True, slots=True)

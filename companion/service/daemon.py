@@ -40,7 +40,7 @@ import numpy as np
 from companion.config import CompanionConfig, ConfigError, load_config
 from companion.config import replace as replace_config
 from companion.method.avoidance import AvoidanceCommand
-from companion.method.control import Controller
+from companion.method.control import Controller, level_flight_view_limit
 from companion.method.geometry import camera_from_config
 from companion.method.mapper import Mapper
 from companion.method.messages import Frame, NavState
@@ -670,6 +670,14 @@ class Daemon:
         log.info("companion running: link %s, camera %s, mapper %s, commanding %s",
                  self.cfg.link.connection, self.cfg.camera.source, self.cfg.mapper.parameterisation,
                  "enabled" if self.cfg.control.commanding_enabled else "off (advisory)")
+        view_m, view_mps = level_flight_view_limit(self.cfg)
+        if self.cfg.avoidance.view_speed_limit and view_mps < self.cfg.control.cruise_speed_mps:
+            log.warning("view speed limit: with camera.mount_pitch_deg %g the camera sees terrain that would need a "
+                        "climb only %.0f m ahead in level flight, so the vehicle flies at most %.1f m/s of "
+                        "control.cruise_speed_mps %g (less with its nose down); pitch the camera nearer the horizon, "
+                        "or set avoidance.view_speed_limit: false to fly the route's speed into terrain the camera "
+                        "has not seen", self.cfg.camera.mount_pitch_deg, view_m, view_mps,
+                        self.cfg.control.cruise_speed_mps)
         try:
             async with asyncio.TaskGroup() as tg:
                 tg.create_task(self.link.run(), name="link")
