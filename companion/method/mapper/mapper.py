@@ -171,7 +171,6 @@ def check_nav(nav: NavState) -> str:
     return _checked_pose_covariance(nav)[0]
 
 
-_I3 = np.eye(3)
 _POSE_INDEX = np.array([0, 1, 2, 6, 7, 8])  # [position, attitude] in NavState.covariance (eq. 6)
 
 

@@ -448,15 +448,11 @@ class TerrainGrid:
         d_ne = ends[:, :2] - o[:2]
         length = np.sqrt((d_ne * d_ne).sum(axis=1))
         reach = length - self.carve_end_margin_m
-        use = reach > 0
+        use = reach > max(self.carve_start_m, 0.0)  # a segment must reach past where carving starts
         if not use.any():
             return CarveStats(rays=int(len(ends)))
-        ends, d_ne, length, reach = ends[use], d_ne[use], length[use], reach[use]
-        use = reach > self.carve_start_m
         if not use.all():
             ends, d_ne, length, reach = ends[use], d_ne[use], length[use], reach[use]
-            if not len(ends):
-                return CarveStats(rays=int(np.count_nonzero(good)))
         step = 0.5 * self.cell_size_m
         start = self.carve_start_m
         n_s = int(np.ceil((reach.max() - start) / step)) + 1
