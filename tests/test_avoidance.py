@@ -444,7 +444,8 @@ def test_the_view_limit_stops_the_vehicle_for_what_the_camera_has_not_seen():
     give no limit; the command's limit is the lesser of the view's and the map's."""
     from companion.method.avoidance import view_distance, view_speed_limit
     cfg = AvoidanceConfig(**{**{f: getattr(CFG, f) for f in CFG.__dataclass_fields__}, "speed_limit_shortfall": 0.1,
-                             "brake_accel_mps2": 2.0, "reaction_time_s": 0.5, "map_latency_s": 1.5})
+                             "brake_accel_mps2": 2.0, "reaction_time_s": 0.5, "map_latency_s": 1.5,
+                             "view_speed_limit": True})
     dep = math.radians(30.0)
     d = view_distance(dep, cfg)
     assert d == pytest.approx(0.9 * cfg.clearance_m / math.tan(dep))

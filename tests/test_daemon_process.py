@@ -220,7 +220,7 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
         early_climb = None
         south_wall = building.footprint_ne_m[:, 0].min()
         track = []
-        limited = []  # avoidance messages carrying the camera's view limit
+        limited = []  # avoidance messages carrying the camera's view distance
         deadline = time.monotonic() + 90
         north = alt = 0.0
         while time.monotonic() < deadline:
@@ -231,7 +231,7 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
                 a = listener.avoidance.get()
                 cell = a.get("limiting_cell")
                 track.append((round(north, 1), round(alt, 1), a["engaged"], cell, a["climb_rate_mps"], a["reason"]))
-                if a.get("view_speed_limit_mps") is not None:
+                if a.get("view_distance_m") is not None:
                     limited.append(a)
                 # A climb for the building: the limiting cell is tall and lies on the building (grown by the
                 # grid's spreading of a point's horizontal uncertainty), the vehicle still short of it.
@@ -258,9 +258,9 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
     print("\n".join(map(str, track[::20])))
     assert early_climb is not None, "no climb commanded for the building before reaching it"
     # The camera's view limit is published with the speed limit it takes part in (docs/zenoh.md).
-    assert limited, "no avoidance message carried the view speed limit"
-    for a in limited:
-        assert a["view_distance_m"] > 0 and a["speed_limit_mps"] <= a["view_speed_limit_mps"] + 1e-6
+    assert limited, "no avoidance message carried the camera's view distance"
+    for a in limited:  # the view limit is opt-in (avoidance.view_speed_limit): off here, so never set
+        assert a["view_distance_m"] > 0 and a["view_speed_limit_mps"] is None
     assert set(status["avoidance"]) >= {"speed_limit_mps", "view_distance_m", "view_speed_limit_mps"}
     # Where the map lies on the Earth: the EKF origin the simulated ArduPilot reported, and its projection.
     frame = status["frame"]
