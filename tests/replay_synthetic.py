@@ -129,8 +129,60 @@ def write_tum(folder: Path, f: Flight, frame: WorldFrame, *, t0: float = 1000.0,
     if sigma_lines:
         (folder / "pose_sigmas.txt").write_text("\n".join(sigma_lines) + "\n")
     (folder / "camera.yaml").write_text(yaml.safe_dump(camera_yaml(f.camera)))
-    meta = {"world_up": frame.up, "world_north": frame.north, "scale_m_per_unit": frame.scale_m_per_unit,
+    def axis(a):
+        return list(a) if isinstance(a, tuple) else a
+
+    meta = {"world_up": axis(frame.up), "world_north": axis(frame.north), "scale_m_per_unit": frame.scale_m_per_unit,
             "pose_sigma_m": 0.05, "pose_sigma_deg": 0.2, **(meta_extra or {})}
+    (folder / "meta.yaml").write_text(yaml.safe_dump(meta))
+    return folder
+
+
+# --------------------------------------------------------------------------------------------
+# COLMAP text model
+# --------------------------------------------------------------------------------------------
+
+
+def write_colmap(folder: Path, f: Flight, frame: WorldFrame, *, model_dir: str = "sparse/0", interval_s: float | None = None,
+                 points_xyz: np.ndarray | None = None, meta_extra: dict | None = None) -> Path:
+    """A COLMAP text model as ``colmap model_converter --output_type TXT`` writes one, independently
+    of the reader: world-to-camera poses (``QW QX QY QZ TX TY TZ``), a PINHOLE camera (or OPENCV with
+    distortion) with its principal point on COLMAP's pixel centres (+0.5), two lines per image (the
+    2D points line left empty), ``points3D.txt`` holding ``points_xyz`` (world units), and the
+    meta.yaml the reader needs; times from ``interval_s`` (meta.yaml) or a timestamps.txt."""
+    model = folder / model_dir
+    model.mkdir(parents=True)
+    (folder / "images").mkdir()
+    c = f.camera
+    dist = [float(d) for d in np.asarray(c.distortion).ravel()]
+    if any(dist):
+        camera = f"1 OPENCV {c.width} {c.height} {c.fx!r} {c.fy!r} {c.cx + 0.5!r} {c.cy + 0.5!r} " + " ".join(map(repr, dist[:4]))
+    else:
+        camera = f"1 PINHOLE {c.width} {c.height} {c.fx!r} {c.fy!r} {c.cx + 0.5!r} {c.cy + 0.5!r}"
+    (model / "cameras.txt").write_text("# Camera list with one line of data per camera:\n" + camera + "\n")
+    lines, times = ["# Image list with two lines of data per image:"], []
+    for k, (tk, pc, Rc, image) in enumerate(zip(f.t, f.p_c, f.R_nc, f.images)):
+        name = f"DJI_{k + 1:04d}.png"
+        cv2.imwrite(str(folder / "images" / name), image)
+        centre, R_w_cv = camera_pose_to_opencv(pc, Rc, frame)
+        R_cw = R_w_cv.T
+        q = matrix_to_quat(R_cw)  # w, x, y, z
+        t = -R_cw @ centre
+        lines += [" ".join([str(k + 1), *map(repr, map(float, q)), *map(repr, map(float, t)), "1", name]), ""]
+        times.append(f"{100.0 + float(tk)!r} {name}")
+    (model / "images.txt").write_text("\n".join(lines) + "\n")
+    pts = np.zeros((0, 3)) if points_xyz is None else np.asarray(points_xyz, float)
+    (model / "points3D.txt").write_text("# 3D point list with one line of data per point:\n" + "".join(
+        f"{k + 1} {x!r} {y!r} {z!r} 128 128 128 0.5 1 0 2 0\n" for k, (x, y, z) in enumerate(pts.tolist())))
+    if interval_s is None:
+        (folder / "timestamps.txt").write_text("\n".join(times) + "\n")
+
+    def axis(a):
+        return list(a) if isinstance(a, tuple) else a
+
+    meta = {"world_up": axis(frame.up), "world_north": axis(frame.north), "scale_m_per_unit": frame.scale_m_per_unit,
+            "pose_sigma_m": 0.05, "pose_sigma_deg": 0.2, **({"frame_interval_s": interval_s} if interval_s else {}),
+            **(meta_extra or {})}
     (folder / "meta.yaml").write_text(yaml.safe_dump(meta))
     return folder
 

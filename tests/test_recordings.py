@@ -74,6 +74,39 @@ def rs_axis(name: str) -> tuple[float, float, float]:
     return tuple(v)
 
 
+@settings(deadline=None, max_examples=60)
+@given(st.lists(st.floats(-1.0, 1.0).map(lambda v: round(v, 3)), min_size=3, max_size=3),
+       st.lists(st.floats(-1.0, 1.0).map(lambda v: round(v, 3)), min_size=3, max_size=3), st.floats(0.01, 100.0))
+def test_an_up_direction_given_as_numbers_is_up_and_north_is_its_level_part(up, north, scale):
+    """An SfM model's up is wherever the reconstruction put it: ``world_up: [ux, uy, uz]`` (any
+    length). North is the given direction projected onto the level plane; A stays a proper
+    rotation that sends up to NED up."""
+    u, n = np.asarray(up), np.asarray(north)
+    if not np.any(u) or not np.any(n):
+        with pytest.raises(RecordingError, match="not a direction"):
+            WorldFrame(tuple(up), tuple(north), scale)
+        return
+    u_hat, n_hat = u / np.linalg.norm(u), n / np.linalg.norm(n)
+    if abs(u_hat @ n_hat) > 0.5:
+        with pytest.raises(RecordingError, match="perpendicular"):
+            WorldFrame(tuple(up), tuple(north), scale)
+        return
+    A = WorldFrame(tuple(up), tuple(north), scale).A
+    assert np.allclose(A @ A.T, np.eye(3)) and np.isclose(np.linalg.det(A), 1.0)
+    assert np.allclose(A @ u_hat, [0.0, 0.0, -1.0])
+    level = n_hat - (n_hat @ u_hat) * u_hat
+    assert np.allclose(A @ (level / np.linalg.norm(level)), [1.0, 0.0, 0.0])
+
+
+def test_an_up_direction_without_north_takes_the_world_axis_farthest_from_it():
+    w = WorldFrame.from_up([0.1, -0.2, 0.97])
+    assert w.up == (0.1, -0.2, 0.97) and w.north == "x"
+    assert WorldFrame.from_up([0.9, 0.1, 0.3]).north == "y"
+    assert np.allclose(WorldFrame.from_up([0.0, 0.0, 2.0]).A, WorldFrame("z", "x").A)
+    with pytest.raises(RecordingError, match=r"world_up: \['a', 1.0, 2.0\] is not a direction"):
+        WorldFrame.from_up(["a", 1.0, 2.0])
+
+
 def test_world_frame_rejects_unknown_axes_and_bad_scale():
     with pytest.raises(RecordingError, match="world_up"):
         WorldFrame("up", "x")

@@ -24,7 +24,7 @@ from companion.desk.recordings.layouts import open_recording, recording_config
 from companion.desk.recordings.recording import WorldFrame, pose_covariance
 from companion.desk.recordings.tum import export_tum
 from companion.desk.replay import EXIT_NOTHING_MAPPED, build_mapper, load_reference, run_replay
-from companion.method.geometry import matrix_to_quat
+from companion.method.geometry import euler_to_matrix, matrix_to_quat
 from companion.method.messages import NavState
 from companion.method.terrain.grid import TerrainGrid
 
@@ -394,6 +394,33 @@ def test_a_geo_referenced_world_maps_about_its_origin(tmp_path, capsys):
         assert rc == 2 and f"{folder / 'meta.yaml'}: 'origin' must be three numbers" in err, err
 
 
+def test_a_world_whose_up_is_any_direction_maps_as_the_level_one(tmp_path, data):
+    """An SfM model's world, tilted 23 deg and turned about its up: meta.yaml gives world_up and
+    world_north as directions (numbers). The replay maps the same cells as the axis-aligned
+    recording, and the truth given in the tilted world's own coordinates (--reference-frame dataset)
+    scores as the truth in the map's frame does."""
+    tilt = euler_to_matrix(math.radians(17.0), math.radians(-15.0), math.radians(40.0))  # level world -> tilted
+    level = WorldFrame("z", "x")
+    tilted = WorldFrame(tuple(map(float, tilt[:, 2])), tuple(map(float, tilt[:, 0])))  # world up, world north
+    assert math.degrees(math.acos(tilted.A[2] @ np.array([0.0, 0.0, -1.0]))) > 20.0  # far from any axis
+    local = run_replay(open_recording(rs.write_tum(tmp_path / "level", rs.flight(), level)), CompanionConfig(),
+                       tmp_path / "out-level")
+    folder = rs.write_tum(tmp_path / "tilted", rs.flight(), tilted)
+    assert yaml.safe_load((folder / "meta.yaml").read_text())["world_up"] == pytest.approx(list(tilted.up))
+    recording = open_recording(folder)
+    # The truth (flat ground, 0 m) written in the tilted world's coordinates.
+    truth = np.loadtxt(data["truth"], delimiter=",", skiprows=1)
+    ned = np.column_stack([truth[:, 0], truth[:, 1], -truth[:, 2]])
+    np.savetxt(tmp_path / "truth_tilted.csv", tilted.position_from_ned(ned), delimiter=",", fmt="%.9f", header="x,y,z", comments="")
+    reference = load_reference(tmp_path / "truth_tilted.csv", recording, frame="dataset")
+    out = run_replay(recording, CompanionConfig(), tmp_path / "out-tilted", reference=reference)
+    same = compare(map_cells(out.grid), map_cells(local.grid))
+    print(f"tilted vs level world: {same['cells_compared']} cells, RMSE {same['rmse_m']:.2e} m, coverage {same['coverage']:.3f}")
+    assert local.metrics["cells_mapped"] > MIN_CELLS and same["coverage"] > 0.95 and same["rmse_m"] < 0.01
+    assert_close_to_truth(out.metrics)
+    assert out.metrics["recording"]["world"]["up"] == pytest.approx(list(tilted.up))
+
+
 def _write_ply(path, xyz, fmt):
     """A PLY point cloud of ``xyz`` (N, 3) with a colour per vertex, as photogrammetry tools write."""
     header = (f"ply\nformat {fmt} 1.0\ncomment written by the test\nelement vertex {len(xyz)}\n"
@@ -429,3 +456,109 @@ def test_a_ply_point_cloud_is_a_reference_like_its_csv(data, tmp_path, fmt, caps
         rc = cli.main(["replay", str(data["tum"]), "-o", str(tmp_path / "o"), "--no-progress", "--reference", str(broken)])
         err = capsys.readouterr().err
         assert rc == 2 and err.startswith(f"companion replay: {broken}: truncated") and len(err.splitlines()) == 1, err
+
+
+# --------------------------------------------------------------------------------------------
+# COLMAP text model
+# --------------------------------------------------------------------------------------------
+
+SFM_WORLD = WorldFrame((0.12, -0.31, 0.94), (0.8, 0.55, 0.0), 0.5)  # an SfM model's tilted, half-scale world
+
+
+def _truth_in(frame: WorldFrame, truth_csv) -> np.ndarray:
+    """The true surface's points (the DSM grid) in ``frame``'s world coordinates."""
+    truth = np.loadtxt(truth_csv, delimiter=",", skiprows=1)
+    return frame.position_from_ned(np.column_stack([truth[:, 0], truth[:, 1], -truth[:, 2]]))
+
+
+def test_a_colmap_model_replays_as_its_tum_twin_and_scores_against_its_own_points(data, tmp_path, capsys):
+    """The flight written as COLMAP writes a model (world-to-camera, w-first quaternions, COLMAP's
+    pixel centres, a PINHOLE camera, sparse/0, images named DJI_NNNN) in a tilted half-scale SfM
+    world, its points3D the true surface: it is read as a recording without conversion, maps the
+    same cells as the same flight in the TUM layout, and its points3D.txt is the reference (in the
+    model's world without being told)."""
+    colmap = rs.write_colmap(tmp_path / "colmap", rs.flight(), SFM_WORLD, points_xyz=_truth_in(SFM_WORLD, data["truth"]))
+    tum = rs.write_tum(tmp_path / "tum", rs.flight(), SFM_WORLD)
+    recording = open_recording(colmap)
+    assert recording.kind == "colmap" and len(recording) == rs.N_FRAMES
+    a = run_replay(recording, CompanionConfig(), tmp_path / "out-colmap")
+    b = run_replay(open_recording(tum), CompanionConfig(), tmp_path / "out-tum")
+    same = compare(map_cells(a.grid), map_cells(b.grid))
+    print(f"COLMAP vs TUM: {same['cells_compared']} cells, RMSE {same['rmse_m']:.2e} m, coverage {same['coverage']:.3f}")
+    assert a.metrics["cells_mapped"] > MIN_CELLS and same["coverage"] > 0.99 and same["rmse_m"] < 0.01
+    rc = cli.main(["replay", str(colmap), "-o", str(tmp_path / "cli"), "--no-progress",
+                   "--reference", str(colmap / "sparse" / "0" / "points3D.txt")])
+    out = capsys.readouterr().out
+    m = json.loads((tmp_path / "cli" / "metrics.json").read_text())
+    print_figures("COLMAP model", m)
+    assert rc == 0 and "reference: RMSE" in out and m["reference"]["frame"] == "dataset"
+    assert_close_to_truth(m)
+
+
+def test_an_export_to_colmap_replays_to_the_same_map(data, tmp_path):
+    """``companion replay REC --export-colmap OUT`` of a --record folder, read back: the same cells,
+    heights within SAME_MAP_TOL_M (its per-frame pose sigmas travel in pose_sigmas.txt)."""
+    cfg = recording_config(data["companion"])
+    own = run_replay(open_recording(data["companion"], cfg), cfg, tmp_path / "own")
+    assert cli.main(["replay", str(data["companion"]), "--export-colmap", str(tmp_path / "colmap")]) == 0
+    assert (tmp_path / "colmap" / "sparse" / "0" / "cameras.txt").read_text().splitlines()[-1].split()[1] == "OPENCV"
+    back = open_recording(tmp_path / "colmap", cfg)
+    assert back.kind == "colmap"
+    again = run_replay(back, cfg, tmp_path / "back")
+    ca, cb = map_cells(own.grid), map_cells(again.grid)
+    diff = float(np.max(np.abs(ca.height - cb.height))) if np.array_equal(ca.keys, cb.keys) else math.inf
+    print(f"own vs COLMAP export: {len(ca)} cells, max |height difference| {diff:.2e} m")
+    assert len(ca) > MIN_CELLS and diff < SAME_MAP_TOL_M
+    assert cli.main(["replay", str(data["companion"]), "--export-colmap", str(tmp_path / "colmap")]) == 2  # never overwrites
+
+
+def test_colmap_cameras_become_opencv_pinholes_on_opencv_pixel_centres():
+    """COLMAP's top-left pixel is centred at (0.5, 0.5), OpenCV's at (0, 0); radial models map onto
+    OpenCV's coefficient order; a fisheye model is refused with the way out."""
+    from companion.desk.recordings.colmap import camera_from_colmap
+
+    c = camera_from_colmap("1 SIMPLE_RADIAL 640 480 500.0 320.5 240.5 -0.1".split())
+    assert (c.fx, c.fy, c.cx, c.cy) == (500.0, 500.0, 320.0, 240.0)
+    assert np.allclose(c.distortion, [-0.1, 0.0, 0.0, 0.0])
+    c = camera_from_colmap("2 FULL_OPENCV 64 48 50 51 32 24 1 2 3 4 5 6 7 8".split())
+    assert (c.fx, c.fy, c.cx, c.cy) == (50.0, 51.0, 31.5, 23.5) and np.allclose(c.distortion, [1, 2, 3, 4, 5, 6, 7, 8])
+    with pytest.raises(ValueError, match="OPENCV_FISHEYE is not a pinhole model .*colmap image_undistorter"):
+        camera_from_colmap("3 OPENCV_FISHEYE 640 480 500 500 320 240 0 0 0 0".split())
+    with pytest.raises(ValueError, match="PINHOLE has 4 parameters, the line has 3"):
+        camera_from_colmap("4 PINHOLE 640 480 500 320 240".split())
+
+
+def test_colmap_mistakes_get_one_line_naming_the_file(data, tmp_path, capsys):
+    """What a COLMAP model lacks is asked for by name; times from frame_interval_s serve as well as a
+    timestamps.txt; an image of a second camera is left out and counted."""
+    def replay(folder):
+        rc = cli.main(["replay", str(folder), "-o", str(tmp_path / f"out-{folder.name}"), "--no-progress"])
+        return rc, capsys.readouterr().err
+
+    folder = rs.write_colmap(tmp_path / "nometa", rs.flight(n_frames=12), SFM_WORLD)
+    (folder / "meta.yaml").unlink()
+    rc, err = replay(folder)
+    assert rc == 2 and f"{folder / 'meta.yaml'}: missing (a COLMAP world has no up direction, scale or times" in err
+
+    folder = rs.write_colmap(tmp_path / "notimes", rs.flight(n_frames=12), SFM_WORLD)
+    (folder / "timestamps.txt").unlink()
+    rc, err = replay(folder)
+    assert rc == 2 and (f"{folder / 'meta.yaml'}: a COLMAP model has no times: give 'frame_interval_s' (images in the "
+                        f"order of their names) or a timestamps.txt beside it") in err
+
+    folder = rs.write_colmap(tmp_path / "fisheye", rs.flight(n_frames=12), SFM_WORLD)
+    cameras = folder / "sparse" / "0" / "cameras.txt"
+    cameras.write_text("# a fisheye lens\n1 OPENCV_FISHEYE 640 480 500 500 320 240 0.1 0 0 0\n")
+    rc, err = replay(folder)
+    assert rc == 2 and f"{cameras}: line 2: camera model OPENCV_FISHEYE is not a pinhole model" in err
+
+    folder = rs.write_colmap(tmp_path / "interval", rs.flight(), SFM_WORLD, interval_s=0.1)
+    images = folder / "sparse" / "0" / "images.txt"
+    lines = images.read_text().splitlines()
+    lines[3] = lines[3].rsplit(" ", 2)[0] + " 2 " + lines[3].rsplit(" ", 1)[1]  # the second image on camera 2
+    images.write_text("\n".join(lines) + "\n")
+    rc, err = replay(folder)
+    m = json.loads((tmp_path / "out-interval" / "metrics.json").read_text())
+    assert rc == 0 and m["frames_listed"] == rs.N_FRAMES - 1 and m["cells_mapped"] > MIN_CELLS
+    assert m["recording"]["bad_lines"] == {"images.txt": 1}
+    assert "DJI_0002.png: camera 2, the recording's camera is 1 (one camera per recording)" in m["recording"]["problems"][0]

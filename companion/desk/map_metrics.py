@@ -194,10 +194,28 @@ def read_reference_ply(path: str | Path) -> ReferencePoints:
     return ReferencePoints(path, xyz[finite], bad, f"{path}: {bad} vertices not finite or missing" if bad else "")
 
 
+def is_colmap_points(path: str | Path) -> bool:
+    """A COLMAP model's ``points3D.txt`` (its coordinates are the model's world: the dataset frame)."""
+    return Path(path).name.lower() == "points3d.txt"
+
+
 def read_reference(path: str | Path) -> ReferencePoints:
-    """A reference surface by its file: ``.ply`` a point cloud (:func:`read_reference_ply`), anything
-    else ``x,y,z`` text (:func:`read_reference_csv`)."""
-    return read_reference_ply(path) if Path(path).suffix.lower() == ".ply" else read_reference_csv(path)
+    """A reference surface by its file: ``.ply`` a point cloud (:func:`read_reference_ply`), a COLMAP
+    ``points3D.txt`` (:func:`companion.desk.recordings.colmap.read_points3d`), anything else
+    ``x,y,z`` text (:func:`read_reference_csv`)."""
+    if Path(path).suffix.lower() == ".ply":
+        return read_reference_ply(path)
+    if is_colmap_points(path):
+        from companion.desk.recordings.colmap import read_points3d
+
+        try:
+            xyz, bad, first = read_points3d(path)
+        except OSError as exc:
+            raise ValueError(f"{path}: cannot read reference surface: {exc}") from exc
+        if not len(xyz):
+            raise ValueError(f"{path}: no 3D point (a model without points3D; expected 'POINT3D_ID X Y Z ...' lines)")
+        return ReferencePoints(Path(path), xyz, bad, first)
+    return read_reference_csv(path)
 
 
 def bin_heights(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray, cell_size_m: float,

@@ -1,7 +1,7 @@
 """``companion replay DIR``: the mapper over a recording, as fast as possible (docs/replay.md).
 
 Reads any layout :mod:`companion.desk.recordings` knows (the service's own ``--record`` folder, a TUM
-folder, EuRoC MAV), runs the same pipeline as the daemon's mapper worker frame by frame
+folder, EuRoC MAV, a COLMAP text model), runs the same pipeline as the daemon's mapper worker frame by frame
 (Harris detector -> :class:`Mapper` with the terrain map as depth prior -> :class:`TerrainGrid`),
 and writes to ``--output``:
 
@@ -10,7 +10,8 @@ and writes to ``--output``:
 * ``terrain_map.png``: the height map with the camera path; ``terrain_error.png`` with a reference;
 * ``terrain.snapshot``: the map itself (``TerrainGrid.load_snapshot`` reads it back).
 
-``--export-tum OUTDIR`` instead converts the recording to the TUM folder form and stops.
+``--export-tum OUTDIR`` / ``--export-colmap OUTDIR`` instead convert the recording to the TUM
+folder form or a COLMAP text model and stop.
 """
 
 from __future__ import annotations
@@ -30,11 +31,12 @@ import numpy as np
 from companion import config as config_mod
 from companion.config import CompanionConfig, ConfigError
 from companion.desk import plots
-from companion.desk.map_metrics import (CellHeights, bin_heights, compare, dense_heights, map_cells, percentile_of,
-                                        read_reference)
+from companion.desk.map_metrics import (CellHeights, bin_heights, compare, dense_heights, is_colmap_points, map_cells,
+                                        percentile_of, read_reference)
 from companion.desk.plots import height_map
 from companion.desk.recordings.layouts import open_recording, recording_config
 from companion.desk.recordings.recording import Overrides, Recording, RecordingError, reason_key
+from companion.desk.recordings.colmap import export_colmap
 from companion.desk.recordings.tum import export_tum
 from companion.method.mapper import Mapper
 from companion.method.mapper.features import HarrisDetector
@@ -455,12 +457,14 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--output", "-o", metavar="OUT", help="output folder (default ./replay-<name of DIR>)")
     p.add_argument("--config", metavar="FILE", help="YAML configuration (mapper, terrain, nav, camera.border_px); "
                    "default: the recording's own (companion) or the built-in defaults")
-    p.add_argument("--format", choices=("auto", "companion", "tum", "euroc"), default="auto", help="recording layout")
+    p.add_argument("--format", choices=("auto", "companion", "tum", "euroc", "colmap"), default="auto", help="recording layout")
     p.add_argument("--parameterisation", choices=("inverse_depth", "cartesian"), help="override mapper.parameterisation")
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after the first N listed frames")
-    p.add_argument("--reference", metavar="FILE.csv", help="reference surface (DSM grid or point cloud, x,y,z per line)")
-    p.add_argument("--reference-frame", choices=("map", "dataset"), default="map",
-                   help="map: north,east,altitude-up in the map frame; dataset: x,y,z in the recording's world frame")
+    p.add_argument("--reference", metavar="FILE", help="reference surface: x,y,z text (DSM grid or point cloud), a .ply "
+                                                        "point cloud or a COLMAP points3D.txt")
+    p.add_argument("--reference-frame", choices=("map", "dataset"),
+                   help="map: north,east,altitude-up in the map frame; dataset: x,y,z in the recording's world frame "
+                        "(default: dataset for a COLMAP points3D.txt, map otherwise)")
     p.add_argument("--reference-stat", default="mean", metavar="STAT",
                    help="how reference points in one map cell become its height: mean (default), median, max, or "
                         "pNN, a percentile (p90: the top surface of a point cloud without its single noisy points)")
@@ -473,6 +477,8 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--black-level", type=int, default=None, metavar="L",
                    help=f"grey levels <= L count as black border (default: {JPEG_BLACK_LEVEL} for JPEG files, 0 otherwise)")
     p.add_argument("--export-tum", metavar="OUTDIR", help="convert the recording to the TUM folder form and stop")
+    p.add_argument("--export-colmap", metavar="OUTDIR", help="convert the recording to a COLMAP text model (+ images, "
+                                                               "meta.yaml, timestamps.txt) and stop")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
@@ -507,17 +513,20 @@ def main(args: argparse.Namespace) -> int:
     except OSError as exc:  # permissions, a file vanishing under us
         return _fail(f"{exc.filename or path}: {exc.strerror or exc}")
 
-    if args.export_tum:
+    for target, export in ((args.export_tum, export_tum), (args.export_colmap, export_colmap)):
+        if not target:
+            continue
         try:
-            counts = export_tum(recording, args.export_tum, limit=args.max_frames)
-        except (FileExistsError, OSError) as exc:
+            counts = export(recording, target, limit=args.max_frames)
+        except (FileExistsError, OSError, ValueError) as exc:
             return _fail(str(exc))
-        print(f"exported {counts['written']} frames to {args.export_tum} "
+        print(f"exported {counts['written']} frames to {target} "
               f"({counts['without_nav']} without navigation, {counts['missing_image']} missing images left out)")
-        return 0
+        return 0 if counts["written"] else EXIT_NOTHING_MAPPED
 
     try:
-        reference = (load_reference(args.reference, recording, args.reference_frame, args.reference_stat,
+        frame = args.reference_frame or ("dataset" if is_colmap_points(args.reference or "") else "map")
+        reference = (load_reference(args.reference, recording, frame, args.reference_stat,
                                     args.reference_min_points) if args.reference else None)
     except ValueError as exc:
         return _fail(str(exc))

@@ -1,7 +1,7 @@
 """Recordings the mapper can replay, read into one form: a time-ordered stream of samples, each a
 camera frame with the navigation state at its capture time (docs/replay.md).
 
-Three layouts are read:
+Four layouts are read:
 
 * ``companion``: the service's own ``--record`` folder (``meta.yaml``, ``frames.csv``,
   ``frames/``, ``telemetry.tlog``; docs/cameras.md). Navigation is rebuilt from the telemetry log
@@ -12,9 +12,12 @@ Three layouts are read:
   pose uncertainty). ``pose_sigmas.txt`` gives per-frame uncertainty when present.
 * ``euroc``: the EuRoC MAV layout (``mav0/cam0/data.csv``, ``mav0/cam0/sensor.yaml``,
   ``mav0/state_groundtruth_estimate0/data.csv``).
+* ``colmap``: a COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``, in the folder
+  or ``sparse/0``) with its ``images/`` and a ``meta.yaml`` (up direction, scale) and the images'
+  times (``timestamps.txt`` or ``frame_interval_s``).
 
-Pose-given layouts (tum, euroc) are converted to the project's frames (docs/conventions.md):
-world -> local NED by :class:`WorldFrame` (north = a declared world axis, down = -up, east =
+Pose-given layouts (tum, euroc, colmap) are converted to the project's frames (docs/conventions.md):
+world -> local NED by :class:`WorldFrame` (north = a declared world direction, down = -up, east =
 down x north, positions times the metric scale); the OpenCV camera frame (x right, y down, z
 optical) -> the paper camera frame (x optical, y right, z down) by ``PAPER_TO_OPENCV``. The
 camera pose is then written as a body pose for a mount (identity by default, so the body *is*
@@ -36,5 +39,6 @@ The modules:
   the frame conversions and what every reader shares;
 * :mod:`~companion.desk.recordings.poses` - pose tables of the pose-given layouts;
 * :mod:`~companion.desk.recordings.telemetry`, :mod:`~companion.desk.recordings.tum`,
-  :mod:`~companion.desk.recordings.euroc` - the three layouts (TUM also written, by ``--export-tum``).
+  :mod:`~companion.desk.recordings.euroc`, :mod:`~companion.desk.recordings.colmap` - the four
+  layouts (TUM and COLMAP also written, by ``--export-tum`` and ``--export-colmap``).
 """

@@ -49,51 +49,81 @@ _AXES = {
 }  # fmt: skip
 
 
+AxisSpec = str | tuple[float, float, float]  # a world axis by name ("z", "-y") or a direction (3 numbers)
+
+
 def _axis(name: Any, key: str) -> np.ndarray:
+    """A unit world direction from an axis name (``x``, ``-y``, ...) or three numbers (any length)."""
+    if isinstance(name, (list, tuple, np.ndarray)):
+        try:
+            v = np.asarray([float(c) for c in name], dtype=float)
+        except (TypeError, ValueError):
+            v = np.zeros(0)
+        norm = float(np.linalg.norm(v)) if v.size == 3 and np.all(np.isfinite(v)) else 0.0
+        if not norm > 0.0:
+            raise RecordingError(f"{key}: {list(name)!r} is not a direction (three finite numbers, not all zero)")
+        return v / norm
     text = str(name).strip().lower().replace("+", "")
     if text not in _AXES:
-        raise RecordingError(f"{key}: {name!r} is not an axis (one of {', '.join(_AXES)})")
+        raise RecordingError(f"{key}: {name!r} is not an axis (one of {', '.join(_AXES)}) or a direction [x, y, z]")
     return np.array(_AXES[text])
+
+
+def _axis_spec(value: Any) -> AxisSpec:
+    """An axis as given in meta.yaml, kept as written: a name, or a tuple of three numbers."""
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return tuple(float(c) if isinstance(c, (int, float)) else c for c in value)
+    return str(value)
 
 
 @dataclass(frozen=True, slots=True)
 class WorldFrame:
-    """A dataset's world frame declared by its up axis, the axis taken as north and the metric scale.
+    """A dataset's world frame declared by its up direction, the direction taken as north and the
+    metric scale.
 
-    ``A`` (3, 3) maps world directions to NED: its rows are north, east and down written in world
-    coordinates, with down = -up and east = down x north (so that north x east = down: a proper
-    rotation, det A = +1, for a right-handed world frame). Positions: ``p_ned = scale * A (p_w - o)``
-    with ``origin`` ``o`` (3,) in world units, the world point taken as the local frame's origin (a
-    geo-referenced world, UTM or ECEF, is millions of units from its own). The default (up -z,
-    north x, scale 1, origin 0) is NED itself.
+    ``up`` and ``north`` are world axes by name (``z``, ``-y``) or directions in world coordinates
+    (three numbers: an SfM model's up is wherever its reconstruction put it). North is projected
+    onto the plane perpendicular to up: ``n = (n0 - (n0 . u) u) / |...|``; it must lie more than
+    60 deg from up. ``A`` (3, 3) maps world directions to NED: its rows are north, east and down
+    written in world coordinates, with down = -up and east = down x north (so that north x east =
+    down: a proper rotation, det A = +1, for a right-handed world frame). Positions: ``p_ned =
+    scale * A (p_w - o)`` with ``origin`` ``o`` (3,) in world units, the world point taken as the
+    local frame's origin (a geo-referenced world, UTM or ECEF, is millions of units from its own).
+    The default (up -z, north x, scale 1, origin 0) is NED itself.
     """
 
-    up: str = "-z"
-    north: str = "x"
+    up: AxisSpec = "-z"
+    north: AxisSpec = "x"
     scale_m_per_unit: float = 1.0
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         up, north = _axis(self.up, "world_up"), _axis(self.north, "world_north")
         if abs(float(up @ north)) > 0.5:
-            raise RecordingError(f"world_north {self.north!r} must be perpendicular to world_up {self.up!r}")
+            raise RecordingError(f"world_north {self.north!r} must be perpendicular to world_up {self.up!r} "
+                                 "(more than 60 deg from it; it is projected onto the level plane)")
         if not (math.isfinite(self.scale_m_per_unit) and self.scale_m_per_unit > 0):
             raise RecordingError(f"scale_m_per_unit must be positive and finite, got {self.scale_m_per_unit}")
         if len(self.origin) != 3 or not all(math.isfinite(float(v)) for v in self.origin):
             raise RecordingError(f"origin must be three finite numbers (world units), got {self.origin!r}")
 
     @classmethod
-    def from_up(cls, up: str, north: str | None = None, scale_m_per_unit: float = 1.0,
+    def from_up(cls, up: Any, north: Any = None, scale_m_per_unit: float = 1.0,
                 origin=(0.0, 0.0, 0.0)) -> "WorldFrame":
-        """North defaults to world x, or world y when up is +-x."""
+        """North defaults to world x, or world y when up is +-x; for an up direction given as numbers,
+        to the world axis farthest from it."""
+        up = _axis_spec(up)
         if north is None:
-            north = "y" if str(up).strip().lower().lstrip("+-") == "x" else "x"
-        return cls(str(up), str(north), float(scale_m_per_unit), tuple(float(v) for v in origin))
+            u = _axis(up, "world_up")
+            north = ("x", "y", "z")[int(np.argmin(np.abs(u)))] if isinstance(up, tuple) else ("y" if abs(u[0]) > 0.5 else "x")
+        return cls(up, _axis_spec(north), float(scale_m_per_unit), tuple(float(v) for v in origin))
 
     @property
     def A(self) -> np.ndarray:
-        north = _axis(self.north, "world_north")
         down = -_axis(self.up, "world_up")
+        north = _axis(self.north, "world_north")
+        north = north - (north @ down) * down
+        north /= np.linalg.norm(north)
         east = np.cross(down, north)
         return np.vstack([north, east, down])
 
@@ -333,11 +363,16 @@ class Recording:
             "frames_listed": len(self.frames),
             "camera": {"width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
                        "distortion": [float(d) for d in np.asarray(c.distortion).ravel()]},
-            "world": {"up": self.world.up, "north": self.world.north, "scale_m_per_unit": self.world.scale_m_per_unit,
+            "world": {"up": _json_axis(self.world.up), "north": _json_axis(self.world.north),
+                      "scale_m_per_unit": self.world.scale_m_per_unit,
                       "origin": list(self.world.origin)},
             "ground_alt_m": self.ground_alt_m,
             **self.stats.as_dict(),
         }
+
+
+def _json_axis(axis: AxisSpec) -> str | list[float]:
+    return list(axis) if isinstance(axis, tuple) else axis
 
 
 def sorted_frames(entries: list[tuple[int, Path, float, int]], source: Path, stats: RecordingStats) -> list[FrameEntry]:
