@@ -23,7 +23,7 @@ from companion.desk.map_metrics import bin_heights, compare, map_cells, read_ref
 from companion.desk.recordings.layouts import open_recording, recording_config
 from companion.desk.recordings.recording import WorldFrame, pose_covariance
 from companion.desk.recordings.tum import export_tum
-from companion.desk.replay import EXIT_NOTHING_MAPPED, build_mapper, load_reference, run_replay
+from companion.desk.replay import EXIT_NOTHING_MAPPED, build_mapper, load_reference, plausibility, run_replay
 from companion.method.geometry import euler_to_matrix, matrix_to_quat
 from companion.method.messages import NavState
 from companion.method.terrain.grid import TerrainGrid
@@ -276,6 +276,25 @@ def _quat_matrix(q_xyzw):
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def test_a_nadir_survey_camera_is_not_taken_for_a_rolled_one(tmp_path):
+    """A survey camera looking straight down (a real DJI survey: 89.9 deg gimbal pitch) has no
+    upright: whatever its heading, no frame counts as rolled. The same camera 45 deg down and
+    rolled 90 deg on its side is; at 10 deg off nadir a 70 deg roll is."""
+    def cameras(depression_deg, roll_deg, n=24):
+        # paper camera frame: x optical, y right, z image down; heading, then depression, then roll
+        return np.stack([euler_to_matrix(math.radians(roll_deg), -math.radians(depression_deg), yaw)
+                         for yaw in np.linspace(-math.pi, math.pi, n, endpoint=False)])
+
+    def warnings(R):
+        return plausibility(np.arange(len(R)) * 0.5, np.full(len(R), 40.0), R, 0.0, tmp_path)
+
+    assert warnings(cameras(89.9, 0.0)) == [] and warnings(cameras(90.0, 37.0)) == []
+    assert warnings(cameras(45.0, 0.0)) == [] and warnings(cameras(45.0, 50.0)) == []
+    rolled = warnings(cameras(45.0, 90.0))
+    assert len(rolled) == 1 and "rolled more than 60 deg from upright in 24 of 24 frames" in rolled[0]
+    assert len(warnings(cameras(80.0, 70.0))) == 1
 
 
 def test_implausible_inputs_get_a_warning_naming_the_likely_mistake(tmp_path, capsys):
@@ -562,3 +581,21 @@ def test_colmap_mistakes_get_one_line_naming_the_file(data, tmp_path, capsys):
     assert rc == 0 and m["frames_listed"] == rs.N_FRAMES - 1 and m["cells_mapped"] > MIN_CELLS
     assert m["recording"]["bad_lines"] == {"images.txt": 1}
     assert "DJI_0002.png: camera 2, the recording's camera is 1 (one camera per recording)" in m["recording"]["problems"][0]
+
+
+def test_a_colmap_model_starts_its_features_on_the_ground_its_points_show(data, tmp_path):
+    """With 'origin: auto' the map's origin is the first camera, 15 m above the ground: a default
+    ground altitude of 0 would start every feature at the camera's own height. Without
+    ground_alt_m in meta.yaml the reader takes the median altitude of the model's points3D (said
+    in the recording's notes); a ground_alt_m given wins; the map is as good as with the truth's."""
+    points = _truth_in(SFM_WORLD, data["truth"])
+    auto = open_recording(rs.write_colmap(tmp_path / "auto", rs.flight(), SFM_WORLD, points_xyz=points,
+                                          meta_extra={"origin": "auto"}))
+    first_camera_alt = -float(rs.flight().p_c[0][2])
+    assert auto.ground_alt_m == pytest.approx(-first_camera_alt, abs=0.01)
+    assert any("ground altitude" in p and "the median of its" in p for p in auto.stats.problems)
+    given = open_recording(rs.write_colmap(tmp_path / "given", rs.flight(), SFM_WORLD, points_xyz=points,
+                                           meta_extra={"origin": "auto", "ground_alt_m": -14.0}))
+    assert given.ground_alt_m == -14.0
+    m = run_replay(auto, CompanionConfig(), tmp_path / "out").metrics
+    assert m["cells_mapped"] > MIN_CELLS

@@ -229,8 +229,21 @@ def nothing_mapped(m: dict[str, Any], path: Path) -> str | None:
 
 LOOKS_UP_DEG = 5.0           # an optical axis this far above the horizon looks up
 ROLLED_DEG = 60.0            # an image whose "down" is this far from the world's down is rolled over
+NEAR_NADIR_DEG = 10.0        # an optical axis this close to straight down has no "upright": any roll is a heading
 IMPLAUSIBLE_FRACTION = 0.5   # warn when more of the frames than this show the same mistake
 MAX_FRAME_INTERVAL_S = 60.0  # a median interval between frames above this is not a camera's
+
+
+def _rolled(R_nc: np.ndarray) -> np.ndarray:
+    """(K,) bool: the image is rolled more than ROLLED_DEG from upright. World down seen from the
+    camera, ``d = R_nc^T (0, 0, 1)`` (paper camera frame: x optical, y right, z image down), has
+    the image-plane part ``(d_y, d_z)``; upright is ``d_z > 0`` along it, and the roll is its angle
+    from the image's down axis: rolled when ``d_z < cos(60 deg) |(d_y, d_z)|``. A camera within
+    10 deg of straight down (``|(d_y, d_z)| < sin 10 deg``, a nadir survey camera) has no upright
+    and is never counted."""
+    d_y, d_z = R_nc[:, 2, 1], R_nc[:, 2, 2]
+    in_plane = np.hypot(d_y, d_z)
+    return (in_plane > np.sin(np.radians(NEAR_NADIR_DEG))) & (d_z < np.cos(np.radians(ROLLED_DEG)) * in_plane)
 
 
 def plausibility(frame_times_s: np.ndarray, camera_alt_m: np.ndarray, R_nc: np.ndarray, ground_alt_m: float,
@@ -240,7 +253,8 @@ def plausibility(frame_times_s: np.ndarray, camera_alt_m: np.ndarray, R_nc: np.n
     (K, 3, 3) the camera's altitude and attitude (paper camera frame -> NED) in each mapped frame.
 
     * The camera below the recording's ground altitude, its image rolled more than 60 deg from
-      upright, or its optical axis more than 5 deg above the horizon, in most frames: the signatures
+      upright (:func:`_rolled`; a camera looking straight down has no upright and is not counted),
+      or its optical axis more than 5 deg above the horizon, in most frames: the signatures
       of world-to-camera poses given where camera-to-world ones are expected, of quaternions in
       another order, or of the wrong up axis (a downward camera seen through any of them).
     * Frames a median of more than a minute apart: timestamps in microseconds or nanoseconds."""
@@ -250,7 +264,7 @@ def plausibility(frame_times_s: np.ndarray, camera_alt_m: np.ndarray, R_nc: np.n
         R = np.asarray(R_nc, dtype=float).reshape(k, 3, 3)
         signs = (
             (np.asarray(camera_alt_m) < ground_alt_m, f"the camera is below the ground altitude ({ground_alt_m:g} m)"),
-            (R[:, 2, 2] < np.cos(np.radians(ROLLED_DEG)), f"the image is rolled more than {ROLLED_DEG:.0f} deg from upright"),
+            (_rolled(R), f"the image is rolled more than {ROLLED_DEG:.0f} deg from upright"),
             (R[:, 2, 0] < -np.sin(np.radians(LOOKS_UP_DEG)), "the camera looks above the horizon"),
         )
         for bad, what in signs:

@@ -215,7 +215,18 @@ def open_colmap(folder: Path, nav: NavConfig, overrides: Overrides = Overrides()
     if not rows:
         raise RecordingError(f"{times_path}: no time for any registered image of {images_path}")
     frames = sorted_frames(entries, images_path, stats)
-    return pose_recording(folder, camera, mount, frames, stats, pm, rows, images_path, nav, overrides, "colmap")
+    recording = pose_recording(folder, camera, mount, frames, stats, pm, rows, images_path, nav, overrides, "colmap")
+    points_path = model / COLMAP_POINTS
+    if "ground_alt_m" not in meta and overrides.ground_alt_m is None and points_path.is_file():
+        # The ground new features are started on: the model's own sparse points say where it is
+        # (their median altitude), where a default of 0 would be the first camera's height with
+        # origin: auto, or the geoid's with a geo-referenced one.
+        xyz, _, _ = read_points3d(points_path)
+        if len(xyz):
+            recording.ground_alt_m = float(np.median(-recording.world.position_to_ned(xyz)[:, 2]))
+            stats.note(f"{points_path}: ground altitude {recording.ground_alt_m:.2f} m, the median of its {len(xyz)} "
+                       "points (meta.yaml ground_alt_m sets another)")
+    return recording
 
 
 def read_points3d(path: str | Path) -> tuple[np.ndarray, int, str]:
