@@ -2,8 +2,8 @@
 
 It subscribes to the vehicle's tiles, status and avoidance state (docs/zenoh.md), asks for the
 whole map when it starts and whenever the vehicle's liveliness token (re)appears, keeps the
-tiles in a :class:`GroundMap`, rewrites a PNG of the map every few seconds (atomically) and
-prints a one-line summary.
+tiles in a :class:`GroundMap`, rewrites a PNG of the map every few seconds (atomically), prints a
+one-line summary, and with ``--http`` serves the map live to browsers (:mod:`drivers.ground_web`).
 
 Ordering: live tiles and query replies both carry the Zenoh timestamp the vehicle stamped the
 tile with, so a reply older than a live tile already applied is dropped (counted as stale)
@@ -108,6 +108,14 @@ class GroundMap:
             ("tiles_rx", "status_rx", "avoidance_rx", "bad_tiles", "stale_tiles", "bad_json", "ignored", "query_errors"), 0
         )
         self.last_error = ""
+        self.changed_tiles: set[tuple[int, int]] = set()  # since the last take_changes()
+        self.changed_status = self.changed_avoidance = False
+
+    def take_changes(self) -> tuple[set[tuple[int, int]], bool, bool]:
+        """The tiles, and whether the status and the avoidance state, changed since the last call."""
+        out = (self.changed_tiles, self.changed_status, self.changed_avoidance)
+        self.changed_tiles, self.changed_status, self.changed_avoidance = set(), False, False
+        return out
 
     # ---- applying samples --------------------------------------------------------------------
 
@@ -151,6 +159,7 @@ class GroundMap:
             return False
         self.tiles[index] = tile
         self._stamps[index] = stamp
+        self.changed_tiles.add(index)
         self.counts["tiles_rx"] += 1
         return True
 
@@ -165,11 +174,13 @@ class GroundMap:
                 return self.reject("bad_json", f"{key}: schema {doc.get('schema') if isinstance(doc, dict) else None!r}")
             self.status = doc
             self.status_rx_monotonic = time.monotonic()
+            self.changed_status = True
             self.counts["status_rx"] += 1
             return True
         if not _has_schema(doc, AVOIDANCE_SCHEMA):
             return self.reject("bad_json", f"{key}: schema {doc.get('schema') if isinstance(doc, dict) else None!r}")
         self.avoidance = doc
+        self.changed_avoidance = True
         self.counts["avoidance_rx"] += 1
         return True
 
@@ -415,14 +426,17 @@ class GroundStation:
 
     def run(self, *, duration_s: float = 0.0, png: str | None = None, png_every_s: float = 2.0,
             summary_every_s: float = 1.0, out: TextIO | None = None, tick_s: float = 0.05,
-            stop: threading.Event | None = None) -> None:
-        """Poll until ``duration_s`` passed (0: forever) or ``stop`` is set, writing the PNG and summary."""
+            stop: threading.Event | None = None, feed=None) -> None:
+        """Poll until ``duration_s`` passed (0: forever) or ``stop`` is set, writing the PNG and summary;
+        ``feed`` (:class:`drivers.ground_web.LiveFeed`) gets every change for the browsers."""
         out = out or sys.stdout
         start = time.monotonic()
         next_png = next_summary = start
         while True:
             now = time.monotonic()
             self.poll()
+            if feed is not None:
+                feed.update_from(self.map)
             if png and now >= next_png:
                 self.map.write_png(png)
                 next_png = now + png_every_s
@@ -452,6 +466,8 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vehicle", help="vehicle name: the <vehicle> of companion/<vehicle>/... (default vehicle1)")
     p.add_argument("--zenoh-config", metavar="JSON5", help="extra Zenoh config file (TLS, access control)")
     p.add_argument("--multicast-scouting", action="store_true", help="also discover the vehicle by UDP multicast")
+    p.add_argument("--http", metavar="HOST:PORT", help="serve the live map to browsers here, e.g. 127.0.0.1:8080 "
+                                                        "(0.0.0.0:8080 for a phone on the same network)")
     p.add_argument("--png", metavar="PATH", help="rewrite this PNG of the map every --png-every seconds")
     p.add_argument("--png-every", type=float, default=2.0, metavar="S")
     p.add_argument("--summary-every", type=float, default=1.0, metavar="S", help="0 = only the final summary")
@@ -484,6 +500,15 @@ def main(args: argparse.Namespace) -> int:
     if args.png_every <= 0:
         print("companion ground: --png-every must be > 0", file=sys.stderr)
         return 2
+    address = None
+    if args.http:
+        from drivers.ground_web import parse_address
+
+        try:
+            address = parse_address(args.http)
+        except ValueError as exc:
+            print(f"companion ground: --http {exc}", file=sys.stderr)
+            return 2
     try:
         cfg = _settings(args)
         station = GroundStation(cfg)
@@ -491,16 +516,30 @@ def main(args: argparse.Namespace) -> int:
     except (ConfigError, BusError) as exc:
         print(f"companion ground: {exc}", file=sys.stderr)
         return 1
+    web = feed = None
+    if address is not None:
+        from drivers.ground_web import LiveFeed, MapWebServer
+
+        feed = LiveFeed(cfg.vehicle_name)
+        try:
+            web = MapWebServer(feed, *address).start()
+        except OSError as exc:
+            station.close()
+            print(f"companion ground: --http {args.http}: cannot listen: {exc.strerror or exc}", file=sys.stderr)
+            return 1
+        print(f"companion ground: live map at {web.url}", flush=True)
     stop = threading.Event()
     previous = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
         station.run(duration_s=args.duration, png=args.png, png_every_s=args.png_every,
-                    summary_every_s=args.summary_every, stop=stop)
+                    summary_every_s=args.summary_every, stop=stop, feed=feed)
     except KeyboardInterrupt:
         pass
     finally:
+        if web is not None:
+            web.close()
         station.close()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

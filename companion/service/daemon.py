@@ -490,11 +490,12 @@ class Daemon:
                 log.info("avoidance released")
                 self.link.send_statustext(SEVERITY_INFO, "companion: avoidance released")
         if self.bus is not None:
-            self.bus.publish_avoidance(self.avoidance_body(cmd, velocity, sent))
+            self.bus.publish_avoidance(self.avoidance_body(cmd, velocity, sent, nav))
         return True
 
-    def avoidance_body(self, cmd: AvoidanceCommand, velocity: np.ndarray, sent: bool) -> dict[str, Any]:
-        """The ``companion.avoidance/1`` payload (docs/zenoh.md): required fields first."""
+    def avoidance_body(self, cmd: AvoidanceCommand, velocity: np.ndarray, sent: bool, nav: NavState | None = None) -> dict[str, Any]:
+        """The ``companion.avoidance/1`` payload (docs/zenoh.md): required fields first; with the
+        navigation state the law used, where the vehicle was (what a map display draws it at)."""
         def num(x):
             return None if x is None or not math.isfinite(x) else round(float(x), 3)
 
@@ -514,6 +515,8 @@ class Daemon:
             "view_speed_limit_mps": num(cmd.view_speed_limit_mps),
             "setpoint_velocity_ned_mps": [round(float(v), 3) for v in velocity],
             "reason": self.command_state,
+            "position_ned_m": None if nav is None else [num(v) for v in nav.position_ned_m],
+            "velocity_ned_mps": None if nav is None else [num(v) for v in nav.velocity_ned_mps],
         }
 
     # ---- publishing, status, snapshots -----------------------------------------------------

@@ -42,6 +42,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="one service setting for the run, e.g. camera.mount_pitch_deg=-30 (repeatable; after --config)")
     p.add_argument("--camera-rate", type=float, default=CAMERA_RATE_HZ, metavar="HZ",
                    help=f"synthetic camera rate in simulated Hz (default {CAMERA_RATE_HZ:g})")
+    p.add_argument("--http", metavar="HOST:PORT",
+                   help="watch the flight live in a browser: the demo's ground station serves its map page here "
+                        "(as companion ground --http does), e.g. 127.0.0.1:8080")
 
 
 def _check_options(args: argparse.Namespace) -> None:
@@ -53,6 +56,13 @@ def _check_options(args: argparse.Namespace) -> None:
         raise ConfigError(f"--camera-rate must be within 0.5..60 Hz, got {args.camera_rate}")
     if not 0 <= args.seed < 2**31:
         raise ConfigError(f"--seed must be within 0..2^31-1, got {args.seed}")
+    if getattr(args, "http", None):
+        from drivers.ground_web import parse_address
+
+        try:
+            parse_address(args.http)
+        except ValueError as exc:
+            raise ConfigError(f"--http {exc}") from None
 
 
 def main(args: argparse.Namespace) -> int:

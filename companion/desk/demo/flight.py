@@ -120,7 +120,7 @@ def run_closed_loop(parameterisation: str, opts, world, obstacle, run_dir: Path,
     wall0 = time.monotonic()
     pilot = Pilot(home_from_scenario(opts.scenario))
     record = RunRecord(parameterisation, pilot.truth)
-    sim = daemon = station = None
+    sim = daemon = station = web = feed = None
     daemon_log = None
     try:
         sim = SimVehicleProcess([
@@ -136,6 +136,15 @@ def run_closed_loop(parameterisation: str, opts, world, obstacle, run_dir: Path,
         station = GroundStation(ZenohConfig(mode="peer", connect=(f"tcp/127.0.0.1:{zenoh_port}",), vehicle_name="demo",
                                             reconnect_min_s=0.2, reconnect_max_s=1.0))
         station.open()
+        if getattr(opts, "http", None):
+            from drivers.ground_web import LiveFeed, MapWebServer, parse_address
+
+            feed = LiveFeed("demo")
+            try:
+                web = MapWebServer(feed, *parse_address(opts.http)).start()
+            except OSError as exc:
+                raise DemoError(f"--http {opts.http}: cannot listen: {exc.strerror or exc}") from None
+            progress.say(f"companion demo: {parameterisation}: live map at {web.url}")
         pilot.start_streams()
         # Wait for the service to be connected and mapping before taking off, so its start-up
         # (imports, Zenoh) does not eat into the flight.
@@ -154,7 +163,7 @@ def run_closed_loop(parameterisation: str, opts, world, obstacle, run_dir: Path,
                                 f"{STARTUP_WALL_S:g} s (see {run_dir / 'daemon.log'})")
             time.sleep(0.05)
         pilot.take_off(float(world.circuit.altitude_agl_m))
-        record.complete, record.problem = fly(record, opts, world, obstacle, pilot, station, daemon, progress, wall0)
+        record.complete, record.problem = fly(record, opts, world, obstacle, pilot, station, daemon, progress, wall0, feed)
     except DemoError as exc:
         record.problem = str(exc)
     finally:
@@ -172,6 +181,8 @@ def run_closed_loop(parameterisation: str, opts, world, obstacle, run_dir: Path,
             station.poll()
             record.ground = {"counts": dict(station.map.counts), "dropped": station.dropped, "syncs": station.syncs}
             station.close()
+        if web is not None:
+            web.close()
         if sim is not None:
             t0 = time.monotonic()
             rc = sim.stop(STOP_WALL_S)
@@ -184,8 +195,9 @@ def run_closed_loop(parameterisation: str, opts, world, obstacle, run_dir: Path,
 
 
 def fly(record: RunRecord, opts, world, obstacle, pilot: Pilot, station, daemon, progress: Progress,
-        wall0: float) -> tuple[bool, str]:
-    """The main loop of a run: record truth, follow the map, cut laps; (complete, problem)."""
+        wall0: float, feed=None) -> tuple[bool, str]:
+    """The main loop of a run: record truth, follow the map, cut laps; (complete, problem). ``feed``
+    (:class:`drivers.ground_web.LiveFeed`) gets the ground station's changes for the browsers."""
     counter = report.LapCounter(world.waypoints_ne_m, LAP_RADIUS_M)
     # A generous bound: the laps at the configured speed, times three, plus a minute.
     circuit_m = float(report.path_length(np.vstack([world.waypoints_ne_m, world.waypoints_ne_m[:1]]))[-1])
@@ -199,6 +211,8 @@ def fly(record: RunRecord, opts, world, obstacle, pilot: Pilot, station, daemon,
         pilot.drain()
         pilot.heartbeat()
         station.poll()
+        if feed is not None:
+            feed.update_from(station.map)
         n = len(pilot.truth)
         if n > seen:
             ne = np.stack([pilot.truth.north_m[seen:n], pilot.truth.east_m[seen:n]], axis=1)

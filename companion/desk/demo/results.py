@@ -44,7 +44,6 @@ def run_metrics(rec: RunRecord, world, obstacle, clearance_m: float) -> dict[str
     det_t = np.array([d[0] for d in rec.detection], float)
     det_h = np.array([d[1] for d in rec.detection], float)
     detected_t = report.first_detection_time(det_t, det_h, DETECTION_FRACTION * obstacle.textured_height_m)
-    needed_s = warning_needed_s(world, obstacle)
     ground = report.ground_around(obstacle.footprint_ne_m, world.terrain_height)
     laps = []
     starts = [0] + rec.lap_ends[:-1]

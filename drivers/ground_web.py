@@ -1,0 +1,260 @@
+"""``companion ground --http HOST:PORT``: the ground station's map, live in a browser.
+
+A small HTTP server (the standard library's, one thread per connection) beside the ground station:
+
+* ``GET /`` - the page (``drivers/ground_web_page.html``: one file, no asset from the internet, so
+  it works on a field laptop or a phone with no connection but the vehicle's);
+* ``GET /events`` - a Server-Sent Events stream: on connect the whole map and the latest status,
+  avoidance state and track, then every change as the ground station applies it (``tile``,
+  ``status``, ``avoidance`` events; the browser's EventSource reconnects by itself and gets the
+  whole map again);
+* ``GET /state.json`` - the same snapshot as one JSON document (for scripts).
+
+Event data (JSON): a tile is ``{"vehicle", "tx", "ty", "cells", "cell_m", "height"}`` with
+``height`` the tile's ``cells x cells`` heights as little-endian float32 in base64, row-major
+``[i north][j east]``, NaN where the cell holds no evidence (docs/zenoh.md, "Tile payload"); a
+status or avoidance event is the vehicle's JSON document as received. The track is the
+avoidance messages' ``position_ned_m`` (one point per 0.5 m moved, the last 5,000).
+
+Threads: the ground station applies samples on its own thread and hands the changes to
+:class:`LiveFeed` (:meth:`LiveFeed.update_from`); each HTTP connection reads its own bounded
+queue. A browser too slow to keep up is disconnected (counted) and comes back with a fresh
+snapshot, so a stalled page never holds the ground station up.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import logging
+import math
+import queue
+import threading
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger("companion.ground.web")
+
+PAGE = Path(__file__).with_name("ground_web_page.html")
+CLIENT_QUEUE = 4096        # events a browser may be behind before it is dropped (it reconnects)
+KEEPALIVE_S = 10.0         # an SSE comment this often keeps proxies and the browser's timer happy
+TRACK_MAX = 5000           # track points kept
+TRACK_STEP_M = 0.5         # a new track point once the vehicle moved this far
+
+
+def parse_address(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[::1]:8080`` for IPv6) -> (host, port); ValueError saying what is expected."""
+    host, _, port = str(text).rpartition(":")
+    if not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"{text!r}: expected HOST:PORT, e.g. 127.0.0.1:8080")
+    return host.strip("[]"), int(port)
+
+
+def tile_event(vehicle: str, tile) -> dict[str, Any]:
+    """A tile as the page reads it (module docstring)."""
+    height = np.where(tile.count > 0, tile.height, np.nan).astype("<f4")
+    return {"vehicle": vehicle, "tx": int(tile.tx), "ty": int(tile.ty), "cells": int(tile.tile_cells),
+            "cell_m": float(tile.cell_size_m), "height": base64.b64encode(height.tobytes()).decode("ascii")}
+
+
+def _sse(event: str, data: Any) -> bytes:
+    return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'), allow_nan=False)}\n\n".encode()
+
+
+class LiveFeed:
+    """What the page shows, kept for new browsers, and fanned out to the connected ones."""
+
+    def __init__(self, vehicle: str) -> None:
+        self.vehicle = vehicle
+        self._lock = threading.Lock()
+        self._tiles: dict[tuple[int, int], bytes] = {}
+        self._status: bytes | None = None
+        self._avoidance: bytes | None = None
+        self._track: list[list[float]] = []
+        self._clients: set[queue.Queue] = set()
+        self.counts = {"events": 0, "clients": 0, "clients_dropped": 0}
+
+    # ---- from the ground station's thread ----------------------------------------------------
+
+    def update_from(self, gmap) -> int:
+        """Hand over what changed in a :class:`drivers.ground_station.GroundMap`; returns events sent."""
+        tiles, status, avoidance = gmap.take_changes()
+        n = 0
+        for index in sorted(tiles):
+            n += self._publish("tile", _sse("tile", tile_event(self.vehicle, gmap.tiles[index])), tile=index)
+        if status and gmap.status is not None:
+            n += self._publish("status", _sse("status", _finite(gmap.status)))
+        if avoidance and gmap.avoidance is not None:
+            n += self._publish("avoidance", _sse("avoidance", _finite(gmap.avoidance)))
+            n += self._track_point(gmap.avoidance.get("position_ned_m"))
+        return n
+
+    def _track_point(self, position: Any) -> int:
+        try:
+            north, east = float(position[0]), float(position[1])
+        except (TypeError, ValueError, IndexError):
+            return 0
+        if not (math.isfinite(north) and math.isfinite(east)):
+            return 0
+        if self._track and math.hypot(north - self._track[-1][0], east - self._track[-1][1]) < TRACK_STEP_M:
+            return 0
+        point = [round(north, 2), round(east, 2)]
+        with self._lock:
+            self._track.append(point)
+            del self._track[:-TRACK_MAX]
+        return self._publish("track", _sse("track", {"vehicle": self.vehicle, "points": [point]}))
+
+    def _publish(self, kind: str, event: bytes, tile: tuple[int, int] | None = None) -> int:
+        with self._lock:
+            if tile is not None:
+                self._tiles[tile] = event
+            elif kind == "status":
+                self._status = event
+            elif kind == "avoidance":
+                self._avoidance = event
+            self.counts["events"] += 1
+            for q in list(self._clients):
+                try:
+                    q.put_nowait(event)
+                except queue.Full:  # a stalled browser: drop it, it reconnects with a snapshot
+                    self._clients.discard(q)
+                    self.counts["clients_dropped"] += 1
+        return 1
+
+    # ---- from the HTTP threads ---------------------------------------------------------------
+
+    def subscribe(self) -> tuple[queue.Queue, list[bytes]]:
+        """A new browser: its queue, and the snapshot to send first (hello, tiles, state, track)."""
+        q: queue.Queue = queue.Queue(CLIENT_QUEUE)
+        with self._lock:
+            hello = _sse("hello", {"vehicle": self.vehicle, "tiles": len(self._tiles)})
+            track = _sse("track", {"vehicle": self.vehicle, "points": list(self._track), "reset": True})
+            snapshot = [hello, *self._tiles.values(), *(e for e in (self._status, self._avoidance) if e), track]
+            self._clients.add(q)
+            self.counts["clients"] += 1
+        return q, snapshot
+
+    def unsubscribe(self, q: queue.Queue) -> None:
+        with self._lock:
+            self._clients.discard(q)
+
+    def connected(self, q: queue.Queue) -> bool:
+        with self._lock:
+            return q in self._clients
+
+    def state(self) -> dict[str, Any]:
+        """The snapshot as one JSON-ready document (``/state.json``)."""
+        def data(event: bytes | None):
+            return None if event is None else json.loads(event.decode().split("data: ", 1)[1])
+
+        with self._lock:
+            return {"vehicle": self.vehicle, "tiles": [data(e) for e in self._tiles.values()],
+                    "status": data(self._status), "avoidance": data(self._avoidance), "track": list(self._track),
+                    "counts": dict(self.counts), "browsers": len(self._clients)}
+
+
+def _finite(doc: Any) -> Any:
+    """JSON has no NaN: non-finite numbers become null (the vehicle already sends them so)."""
+    if isinstance(doc, dict):
+        return {k: _finite(v) for k, v in doc.items()}
+    if isinstance(doc, list):
+        return [_finite(v) for v in doc]
+    if isinstance(doc, float) and not math.isfinite(doc):
+        return None
+    return doc
+
+
+class MapWebServer:
+    """The HTTP server of the page (module docstring); ``start`` binds and serves on a thread."""
+
+    def __init__(self, feed: LiveFeed, host: str = "127.0.0.1", port: int = 8080) -> None:
+        self.feed = feed
+        self._stop = threading.Event()
+        server = self
+
+        class Handler(BaseHTTPRequestHandler):
+            protocol_version = "HTTP/1.1"
+
+            def log_message(self, fmt: str, *args: Any) -> None:  # the station's own log, not stderr
+                log.debug("%s %s", self.address_string(), fmt % args)
+
+            def do_GET(self) -> None:  # noqa: N802 - the standard library's name
+                path = self.path.split("?", 1)[0]
+                if path in ("/", "/index.html"):
+                    self._send(HTTPStatus.OK, "text/html; charset=utf-8", PAGE.read_bytes())
+                elif path == "/state.json":
+                    self._send(HTTPStatus.OK, "application/json", json.dumps(server.feed.state()).encode())
+                elif path == "/events":
+                    self._events()
+                elif path == "/favicon.ico":
+                    self._send(HTTPStatus.NO_CONTENT, "image/x-icon", b"")
+                else:
+                    self._send(HTTPStatus.NOT_FOUND, "text/plain; charset=utf-8", b"not found\n")
+
+            def _send(self, status: HTTPStatus, kind: str, body: bytes) -> None:
+                self.send_response(status)
+                self.send_header("Content-Type", kind)
+                self.send_header("Content-Length", str(len(body)))
+                self.send_header("Cache-Control", "no-store")
+                self.end_headers()
+                self.wfile.write(body)
+
+            def _events(self) -> None:
+                self.send_response(HTTPStatus.OK)
+                self.send_header("Content-Type", "text/event-stream")
+                self.send_header("Cache-Control", "no-store")
+                self.send_header("Connection", "close")
+                self.end_headers()
+                self.close_connection = True
+                q, snapshot = server.feed.subscribe()
+                try:
+                    self.wfile.write(b"retry: 1000\n\n" + b"".join(snapshot))
+                    self.wfile.flush()
+                    while not server._stop.is_set() and server.feed.connected(q):
+                        try:
+                            event = q.get(timeout=KEEPALIVE_S)
+                        except queue.Empty:
+                            event = b": keepalive\n\n"
+                        batch = [event]
+                        while len(batch) < 256:  # what else is waiting goes in the same write
+                            try:
+                                batch.append(q.get_nowait())
+                            except queue.Empty:
+                                break
+                        self.wfile.write(b"".join(batch))
+                        self.wfile.flush()
+                except (BrokenPipeError, ConnectionResetError, OSError):
+                    pass
+                finally:
+                    server.feed.unsubscribe(q)
+
+        self._httpd = ThreadingHTTPServer((host, port), Handler)
+        self._httpd.daemon_threads = True
+        self._thread: threading.Thread | None = None
+
+    @property
+    def address(self) -> tuple[str, int]:
+        host, port = self._httpd.server_address[:2]
+        return str(host), int(port)
+
+    @property
+    def url(self) -> str:
+        host, port = self.address
+        return f"http://{host}:{port}/"
+
+    def start(self) -> "MapWebServer":
+        self._thread = threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.2},
+                                        name="companion-ground-http", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        self._httpd.shutdown()
+        self._httpd.server_close()
+        if self._thread is not None:
+            self._thread.join(5.0)
