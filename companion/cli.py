@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "quality": ("companion.desk.quality.suite", "the scenario suite: what a pilot sees, over scenarios x seeds x mappers"),
     "replay": ("companion.desk.replay", "run the mapper over a recording as fast as possible"),
     "ground": ("drivers.ground_station", "ground-station subscriber: reassembles the map from Zenoh"),
+    "router": ("drivers.zenoh_router", "Zenoh router for a fleet: vehicles and ground stations connect to it"),
     "config": ("companion.config_cli", "print the default configuration or check a file"),
 }
 

@@ -247,6 +247,9 @@ class BusStats:
     links: int = 0
     link_ups: int = 0
     link_downs: int = 0
+    bytes_tiles: int = 0        # of bytes_published: tiles, status, avoidance (what the radio carries)
+    bytes_status: int = 0
+    bytes_avoidance: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return {name: getattr(self, name) for name in self.__slots__}
@@ -451,6 +454,7 @@ class ZenohBus:
         with self._lock:
             self._n["published_tiles"] += 1
             self._n["bytes_published"] += len(payload)
+            self._n["bytes_tiles"] += len(payload)
 
     def publish_tiles(self, items: Iterable[tuple[int, int, bytes]]) -> int:
         """Publish several tiles; returns how many."""
@@ -495,6 +499,7 @@ class ZenohBus:
         with self._lock:
             self._n[f"published_{which}"] += 1
             self._n["bytes_published"] += len(payload)
+            self._n[f"bytes_{which}"] += len(payload)
         return payload
 
     def publish_status(self, body: Mapping[str, Any]) -> bytes:

@@ -80,7 +80,8 @@ def test_grid_tiles_survive_the_wire():
     "mutate, message",
     [
         (lambda d: b"XXXX" + d[4:], "magic"),
-        (lambda d: d[:4] + struct.pack("<H", 2) + d[6:], "version"),
+        (lambda d: d[:4] + struct.pack("<H", 3) + d[6:], "version"),
+        (lambda d: d[:26] + struct.pack("<H", 1) + d[28:], "version 1 with unknown flags"),
         (lambda d: d[:6] + struct.pack("<H", 0b100000111) + d[8:], "layers"),
         (lambda d: d[:6] + struct.pack("<H", 0b011) + d[8:], "layers"),
         (lambda d: d[:-1], "length"),
@@ -95,6 +96,41 @@ def test_bad_payloads_are_rejected(mutate, message):
     data = encode_tile(random_tile(np.random.default_rng(3)))
     with pytest.raises(ValueError, match=message):
         decode_tile(mutate(data))
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), t=st.sampled_from([1, 4, 32]), dis=st.booleans())
+def test_a_deflated_tile_decodes_to_the_same_tile(seed, t, dis):
+    """Format version 2 with the deflate flag: the same tile back, bit for bit, from fewer bytes
+    whenever cells are unknown (NaN, +inf, 0 compress to nearly nothing)."""
+    tile = random_tile(np.random.default_rng(seed), t, disagreement=dis)
+    data = encode_tile(tile, with_disagreement=dis, deflate=True)
+    version, flags = struct.unpack_from("<H", data, 4)[0], struct.unpack_from("<H", data, 26)[0]
+    assert (version, flags) == (2, 1) and struct.unpack_from("<I", data, 28)[0] == zlib.crc32(data[32:])
+    assert decode_tile(data).same_as(tile)
+    assert zlib.decompress(data[32:]) == encode_tile(tile, with_disagreement=dis)[32:]  # the documented layout, deflated
+
+
+def test_a_sparse_tile_deflates_to_a_fraction_and_bad_deflated_payloads_are_refused():
+    z = np.full((32, 32), np.nan, np.float32)
+    tile = Tile(0, 0, z, np.full((32, 32), np.inf, np.float32), np.zeros((32, 32), np.uint32))
+    tile.height[:4], tile.variance[:4], tile.count[:4] = 2.5, 0.3, 2
+    plain, small = encode_tile(tile), encode_tile(tile, deflate=True)
+    assert len(plain) == 12_320 and len(small) < 200 and decode_tile(small).same_as(tile)
+
+    def framed(body, flags=1, t=32):
+        return struct.pack("<4sHHiidHHI", b"CTTL", 2, 0b111, 0, 0, 1.0, t, flags, zlib.crc32(body)) + body
+
+    with pytest.raises(ValueError, match="does not inflate"):
+        decode_tile(framed(b"not deflate data"))
+    with pytest.raises(ValueError, match=r"inflates to 12289\+ bytes, expected 12288"):  # a deflate bomb stops there
+        decode_tile(framed(zlib.compress(bytes(10_000_000))))
+    with pytest.raises(ValueError, match="inflates to 100 bytes"):
+        decode_tile(framed(zlib.compress(bytes(100))))
+    with pytest.raises(ValueError, match="unknown flags"):
+        decode_tile(framed(zlib.compress(bytes(12_288)), flags=3))
+    with pytest.raises(ValueError, match="CRC"):
+        decode_tile(small[:40] + bytes([small[40] ^ 1]) + small[41:])
 
 
 def test_malformed_tiles_are_refused():

@@ -218,6 +218,8 @@ class Daemon:
         self.command_state = "starting"
         self.engaged = False
         self._engaged_changed_t = -math.inf
+        self._avoidance_published_t = -math.inf  # when the avoidance state last went out, and what it was
+        self._avoidance_published_state: tuple[bool, bool] | None = None
         self.snapshot_ok_t: float | None = None
         self.snapshot_error = ""
         self.snapshot_failures = 0
@@ -489,9 +491,18 @@ class Daemon:
             else:
                 log.info("avoidance released")
                 self.link.send_statustext(SEVERITY_INFO, "companion: avoidance released")
-        if self.bus is not None:
+        if self.bus is not None and self._avoidance_due(now, cmd.engaged, sent):
             self.bus.publish_avoidance(self.avoidance_body(cmd, velocity, sent, nav))
         return True
+
+    def _avoidance_due(self, now: float, engaged: bool, sent: bool) -> bool:
+        """Publish the avoidance state at ``zenoh.avoidance_rate_hz``, and at once when the law
+        engages or releases or the mode changes (a ground station never misses a transition)."""
+        state = (bool(engaged), bool(sent))
+        if state != self._avoidance_published_state or now - self._avoidance_published_t >= 1.0 / self.cfg.zenoh.avoidance_rate_hz:
+            self._avoidance_published_state, self._avoidance_published_t = state, now
+            return True
+        return False
 
     def avoidance_body(self, cmd: AvoidanceCommand, velocity: np.ndarray, sent: bool, nav: NavState | None = None) -> dict[str, Any]:
         """The ``companion.avoidance/1`` payload (docs/zenoh.md): required fields first; with the
@@ -522,12 +533,16 @@ class Daemon:
     # ---- publishing, status, snapshots -----------------------------------------------------
 
     async def _publish_loop(self) -> None:
+        """Every ``zenoh.tile_interval_s``, the tiles that changed since the last round (a tile
+        that changed several times goes out once, as it is now); deflated unless
+        ``zenoh.tile_deflate`` is off (docs/zenoh.md, "Bandwidth")."""
+        deflate = self.cfg.zenoh.tile_deflate
         while not self._stop.is_set():
-            await self.clock.sleep(0.2)
+            await self.clock.sleep(self.cfg.zenoh.tile_interval_s)
             if self.bus is None:
                 continue
             with self.grid_lock:
-                changed = [(k, encode_tile(self.grid.tile(k))) for k in self.grid.pop_dirty()]
+                changed = [(k, encode_tile(self.grid.tile(k), deflate=deflate)) for k in self.grid.pop_dirty()]
             for (tx, ty), payload in changed:
                 self.bus.publish_tile(tx, ty, payload)
 
