@@ -31,7 +31,7 @@ import numpy as np
 import zenoh
 
 from companion.config import ConfigError, ZenohConfig, load_config
-from drivers.zenoh_bus import AVOIDANCE_SCHEMA, STATUS_SCHEMA, BusError, BusKeys, zenoh_config
+from drivers.zenoh_bus import AVOIDANCE_SCHEMA, KEY_ROOT, STATUS_SCHEMA, BusError, BusKeys, zenoh_config
 
 UNKNOWN_BGR = (128, 128, 128)
 COLORMAP = cv2.COLORMAP_TURBO
@@ -325,16 +325,28 @@ class GroundMap:
 
 
 class GroundStation:
-    """The Zenoh side: subscriptions and map queries feeding a :class:`GroundMap`.
+    """The Zenoh side: subscriptions and map queries feeding one :class:`GroundMap` per vehicle.
+
+    ``vehicles``: the vehicles followed (default: ``cfg.vehicle_name``), or ``("*",)`` for every
+    vehicle that publishes under ``companion/``. :attr:`map` is the first vehicle's map (the PNG
+    and the summary line are of it); :attr:`maps` holds them all, a vehicle's map created when
+    its first sample arrives.
 
     Zenoh delivers samples on its own threads; they are queued and applied by :meth:`poll` on
-    the caller's thread, so the map is only ever touched by one thread.
+    the caller's thread, so the maps are only ever touched by one thread.
     """
 
     def __init__(self, cfg: ZenohConfig, gmap: GroundMap | None = None, *, query_timeout_s: float = 5.0,
-                 max_queue: int = 10_000) -> None:
+                 max_queue: int = 10_000, vehicles: tuple[str, ...] | None = None) -> None:
         self.cfg = cfg
-        self.map = gmap or GroundMap(cfg.vehicle_name)
+        self.vehicles = tuple(vehicles) if vehicles else (cfg.vehicle_name,)
+        self.every_vehicle = self.vehicles == ("*",)
+        primary = cfg.vehicle_name if self.every_vehicle else self.vehicles[0]
+        self.map = gmap or GroundMap(primary)
+        self.maps: dict[str, GroundMap] = {self.map.keys.vehicle: self.map}
+        if not self.every_vehicle:
+            for v in self.vehicles:
+                self.maps.setdefault(v, GroundMap(v))
         self.keys = self.map.keys
         self.query_timeout_s = query_timeout_s
         self._q: queue.Queue = queue.Queue(maxsize=max_queue)
@@ -344,19 +356,38 @@ class GroundStation:
         self.dropped = 0
         self.syncs = 0
 
+    def _roots(self) -> list[str]:
+        """The key roots subscribed and queried: one per vehicle followed, or the wildcard."""
+        return [f"{KEY_ROOT}/*"] if self.every_vehicle else [BusKeys(v).root for v in self.maps]
+
+    def map_for(self, key: str) -> GroundMap | None:
+        """The map a sample's key belongs to (created for a newly seen vehicle when following every one)."""
+        parts = key.split("/")
+        if len(parts) < 3 or parts[0] != KEY_ROOT:
+            return None
+        vehicle = parts[1]
+        if vehicle not in self.maps and self.every_vehicle:
+            try:
+                self.maps[vehicle] = GroundMap(vehicle)
+            except BusError:
+                return None
+        return self.maps.get(vehicle)
+
     def open(self) -> None:
         try:
             self._session = zenoh.open(zenoh_config(self.cfg))
         except zenoh.ZError as exc:
             raise BusError(f"zenoh: cannot open the ground station's {self.cfg.mode} session: {exc}") from None
-        s, k = self._session, self.keys
-        self._declared = [
-            s.declare_subscriber(k.tiles, self._on_sample),
-            s.declare_subscriber(k.status, self._on_sample),
-            s.declare_subscriber(k.avoidance, self._on_sample),
-            # The vehicle's token appearing (at start-up or after a link loss) means "ask again".
-            s.liveliness().declare_subscriber(k.alive, self._on_alive, history=True),
-        ]
+        s = self._session
+        self._declared = []
+        for root in self._roots():
+            self._declared += [
+                s.declare_subscriber(f"{root}/terrain/tile/*/*", self._on_sample),
+                s.declare_subscriber(f"{root}/status", self._on_sample),
+                s.declare_subscriber(f"{root}/avoidance", self._on_sample),
+                # A vehicle's token appearing (at start-up or after a link loss) means "ask again".
+                s.liveliness().declare_subscriber(f"{root}/alive", self._on_alive, history=True),
+            ]
         self._resync.set()
 
     def close(self) -> None:
@@ -399,17 +430,25 @@ class GroundStation:
             self._resync.set()
 
     def sync(self) -> int:
-        """Ask the vehicle for its whole map (``terrain/tile/**``); returns the tiles applied."""
+        """Ask the vehicles for their whole maps (``terrain/tile/**``); returns the tiles applied."""
         self._resync.clear()
         self.syncs += 1
         applied = 0
-        for reply in self._session.get(f"{self.keys.root}/terrain/tile/**", timeout=self.query_timeout_s):
-            sample = reply.ok
-            if sample is None:
-                self.map.reject("query_errors", f"map query error: {reply.err.payload.to_bytes()[:200]!r}")
-                continue
-            applied += self.map.apply(str(sample.key_expr), sample.payload.to_bytes(), self._stamp(sample))
+        for root in self._roots():
+            for reply in self._session.get(f"{root}/terrain/tile/**", timeout=self.query_timeout_s):
+                sample = reply.ok
+                if sample is None:
+                    self.map.reject("query_errors", f"map query error: {reply.err.payload.to_bytes()[:200]!r}")
+                    continue
+                applied += self._apply(str(sample.key_expr), sample.payload.to_bytes(), self._stamp(sample))
         return applied
+
+    def _apply(self, key: str, payload: bytes, stamp: int | None) -> bool:
+        gmap = self.map_for(key)
+        if gmap is None:
+            self.map.counts["ignored"] += 1
+            return False
+        return gmap.apply(key, payload, stamp)
 
     def poll(self) -> int:
         """Apply queued samples (and re-sync when asked); returns the samples handled."""
@@ -421,7 +460,7 @@ class GroundStation:
                 key, payload, stamp = self._q.get_nowait()
             except queue.Empty:
                 return n
-            self.map.apply(key, payload, stamp)
+            self._apply(key, payload, stamp)
             n += 1
 
     def run(self, *, duration_s: float = 0.0, png: str | None = None, png_every_s: float = 2.0,
@@ -436,7 +475,8 @@ class GroundStation:
             now = time.monotonic()
             self.poll()
             if feed is not None:
-                feed.update_from(self.map)
+                for gmap in list(self.maps.values()):
+                    feed.update_from(gmap)
             if png and now >= next_png:
                 self.map.write_png(png)
                 next_png = now + png_every_s
@@ -463,7 +503,10 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="Zenoh endpoint of the vehicle or a router, e.g. tcp/192.168.1.10:7447 (repeatable)")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help="endpoint to listen on (repeatable)")
     p.add_argument("--mode", choices=("peer", "client"), help="Zenoh mode (default: peer, or the config file's)")
-    p.add_argument("--vehicle", help="vehicle name: the <vehicle> of companion/<vehicle>/... (default vehicle1)")
+    p.add_argument("--vehicle", action="append", default=[],
+                   help="vehicle name: the <vehicle> of companion/<vehicle>/... (default vehicle1); repeat it to follow "
+                        "several (the PNG and the summary are of the first, the page shows them all)")
+    p.add_argument("--all-vehicles", action="store_true", help="follow every vehicle publishing under companion/ (a fleet)")
     p.add_argument("--zenoh-config", metavar="JSON5", help="extra Zenoh config file (TLS, access control)")
     p.add_argument("--multicast-scouting", action="store_true", help="also discover the vehicle by UDP multicast")
     p.add_argument("--http", metavar="HOST:PORT", help="serve the live map to browsers here, e.g. 127.0.0.1:8080 "
@@ -484,7 +527,7 @@ def _settings(args: argparse.Namespace) -> ZenohConfig:
     if args.mode:
         changes["mode"] = args.mode
     if args.vehicle:
-        changes["vehicle_name"] = args.vehicle
+        changes["vehicle_name"] = args.vehicle[0]
     if args.zenoh_config:
         changes["config_file"] = args.zenoh_config
     if args.multicast_scouting:
@@ -511,7 +554,7 @@ def main(args: argparse.Namespace) -> int:
             return 2
     try:
         cfg = _settings(args)
-        station = GroundStation(cfg)
+        station = GroundStation(cfg, vehicles=("*",) if args.all_vehicles else (tuple(args.vehicle) or None))
         station.open()
     except (ConfigError, BusError) as exc:
         print(f"companion ground: {exc}", file=sys.stderr)
@@ -520,7 +563,7 @@ def main(args: argparse.Namespace) -> int:
     if address is not None:
         from drivers.ground_web import LiveFeed, MapWebServer
 
-        feed = LiveFeed(cfg.vehicle_name)
+        feed = LiveFeed(f"companion ground ({'every vehicle' if station.every_vehicle else ', '.join(station.vehicles)})")
         try:
             web = MapWebServer(feed, *address).start()
         except OSError as exc:

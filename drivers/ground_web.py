@@ -4,17 +4,19 @@ A small HTTP server (the standard library's, one thread per connection) beside t
 
 * ``GET /`` - the page (``drivers/ground_web_page.html``: one file, no asset from the internet, so
   it works on a field laptop or a phone with no connection but the vehicle's);
-* ``GET /events`` - a Server-Sent Events stream: on connect the whole map and the latest status,
-  avoidance state and track, then every change as the ground station applies it (``tile``,
-  ``status``, ``avoidance`` events; the browser's EventSource reconnects by itself and gets the
-  whole map again);
+* ``GET /events`` - a Server-Sent Events stream: on connect every vehicle's frame, latest status
+  and avoidance state, the whole map and the tracks, then every change as the ground station
+  applies it (``frame``, ``tile``, ``status``, ``avoidance``, ``track`` events; the browser's
+  EventSource reconnects by itself and gets the whole map again);
 * ``GET /state.json`` - the same snapshot as one JSON document (for scripts).
 
 Event data (JSON): a tile is ``{"vehicle", "tx", "ty", "cells", "cell_m", "height"}`` with
 ``height`` the tile's ``cells x cells`` heights as little-endian float32 in base64, row-major
 ``[i north][j east]``, NaN where the cell holds no evidence (docs/zenoh.md, "Tile payload"); a
-status or avoidance event is the vehicle's JSON document as received. The track is the
-avoidance messages' ``position_ned_m`` (one point per 0.5 m moved, the last 5,000).
+status or avoidance event is the vehicle's JSON document as received (with ``vehicle``). The
+track is the avoidance messages' ``position_ned_m`` (one point per 0.5 m moved, the last 5,000).
+Each vehicle maps in its own local frame; a ``frame`` event says where its origin lies in the
+page's frame, the first vehicle's (:meth:`LiveFeed._place`).
 
 Threads: the ground station applies samples on its own thread and hands the changes to
 :class:`LiveFeed` (:meth:`LiveFeed.update_from`); each HTTP connection reads its own bounded
@@ -66,15 +68,19 @@ def _sse(event: str, data: Any) -> bytes:
 
 
 class LiveFeed:
-    """What the page shows, kept for new browsers, and fanned out to the connected ones."""
+    """What the page shows, kept for new browsers, and fanned out to the connected ones: every
+    vehicle's tiles, status, avoidance state and track, and where its local frame lies in the
+    page's frame (:meth:`_place`)."""
 
-    def __init__(self, vehicle: str) -> None:
-        self.vehicle = vehicle
+    def __init__(self, name: str = "ground") -> None:
+        self.name = name
         self._lock = threading.Lock()
-        self._tiles: dict[tuple[int, int], bytes] = {}
-        self._status: bytes | None = None
-        self._avoidance: bytes | None = None
-        self._track: list[list[float]] = []
+        self._order: list[str] = []                               # vehicles in the order first seen
+        self._tiles: dict[tuple[str, int, int], bytes] = {}
+        self._state: dict[tuple[str, str], bytes] = {}            # (vehicle, "status" | "avoidance" | "frame")
+        self._track: dict[str, list[list[float]]] = {}
+        self._frames: dict[str, Any] = {}                          # vehicle -> LocalFrame or None
+        self._offsets: dict[str, list[float] | None] = {}
         self._clients: set[queue.Queue] = set()
         self.counts = {"events": 0, "clients": 0, "clients_dropped": 0}
 
@@ -82,40 +88,71 @@ class LiveFeed:
 
     def update_from(self, gmap) -> int:
         """Hand over what changed in a :class:`drivers.ground_station.GroundMap`; returns events sent."""
+        vehicle = gmap.keys.vehicle
         tiles, status, avoidance = gmap.take_changes()
         n = 0
+        if vehicle not in self._order:
+            self._order.append(vehicle)
+            n += self._place()
         for index in sorted(tiles):
-            n += self._publish("tile", _sse("tile", tile_event(self.vehicle, gmap.tiles[index])), tile=index)
+            n += self._publish(_sse("tile", tile_event(vehicle, gmap.tiles[index])), tile=(vehicle, *index))
         if status and gmap.status is not None:
-            n += self._publish("status", _sse("status", _finite(gmap.status)))
+            n += self._publish(_sse("status", {"vehicle": vehicle, **_finite(gmap.status)}), state=(vehicle, "status"))
+            frame = _local_frame(gmap.status)
+            if frame != self._frames.get(vehicle):
+                self._frames[vehicle] = frame
+                n += self._place()
         if avoidance and gmap.avoidance is not None:
-            n += self._publish("avoidance", _sse("avoidance", _finite(gmap.avoidance)))
-            n += self._track_point(gmap.avoidance.get("position_ned_m"))
+            n += self._publish(_sse("avoidance", {"vehicle": vehicle, **_finite(gmap.avoidance)}), state=(vehicle, "avoidance"))
+            n += self._track_point(vehicle, gmap.avoidance.get("position_ned_m"))
         return n
 
-    def _track_point(self, position: Any) -> int:
+    def _place(self) -> int:
+        """Where each vehicle's local frame lies in the page's frame (the first vehicle's): the
+        offset (north, east, up; m) of its origin, from both origins (``frame`` in the status,
+        companion/method/geodesy.py). The page draws a vehicle's tiles, track and position shifted by
+        it: a translation, exact at the origins and within centimetres over a few kilometres (the
+        two tangent planes turn by distance / Earth radius). None (not drawn) until both origins
+        are known; the first vehicle is at zero whatever its origin. Publishes what changed."""
+        from companion.method.geodesy import place_cells
+
+        ref = self._order[0]
+        n = 0
+        for vehicle in self._order:
+            if vehicle == ref:
+                offset = [0.0, 0.0, 0.0]
+            elif self._frames.get(vehicle) is None or self._frames.get(ref) is None:
+                offset = None
+            else:
+                north, east, up = place_cells(np.zeros(1), np.zeros(1), np.zeros(1), self._frames[vehicle], self._frames[ref])
+                offset = [round(float(north[0]), 3), round(float(east[0]), 3), round(float(up[0]), 3)]
+            if vehicle not in self._offsets or self._offsets[vehicle] != offset:
+                self._offsets[vehicle] = offset
+                n += self._publish(_sse("frame", {"vehicle": vehicle, "offset_m": offset, "reference": ref}), state=(vehicle, "frame"))
+        return n
+
+    def _track_point(self, vehicle: str, position: Any) -> int:
         try:
             north, east = float(position[0]), float(position[1])
         except (TypeError, ValueError, IndexError):
             return 0
         if not (math.isfinite(north) and math.isfinite(east)):
             return 0
-        if self._track and math.hypot(north - self._track[-1][0], east - self._track[-1][1]) < TRACK_STEP_M:
+        track = self._track.setdefault(vehicle, [])
+        if track and math.hypot(north - track[-1][0], east - track[-1][1]) < TRACK_STEP_M:
             return 0
         point = [round(north, 2), round(east, 2)]
         with self._lock:
-            self._track.append(point)
-            del self._track[:-TRACK_MAX]
-        return self._publish("track", _sse("track", {"vehicle": self.vehicle, "points": [point]}))
+            track.append(point)
+            del track[:-TRACK_MAX]
+        return self._publish(_sse("track", {"vehicle": vehicle, "points": [point]}))
 
-    def _publish(self, kind: str, event: bytes, tile: tuple[int, int] | None = None) -> int:
+    def _publish(self, event: bytes, tile: tuple[str, int, int] | None = None, state: tuple[str, str] | None = None) -> int:
         with self._lock:
             if tile is not None:
                 self._tiles[tile] = event
-            elif kind == "status":
-                self._status = event
-            elif kind == "avoidance":
-                self._avoidance = event
+            if state is not None:
+                self._state[state] = event
             self.counts["events"] += 1
             for q in list(self._clients):
                 try:
@@ -128,12 +165,14 @@ class LiveFeed:
     # ---- from the HTTP threads ---------------------------------------------------------------
 
     def subscribe(self) -> tuple[queue.Queue, list[bytes]]:
-        """A new browser: its queue, and the snapshot to send first (hello, tiles, state, track)."""
+        """A new browser: its queue, and the snapshot to send first (hello; each vehicle's frame,
+        status and avoidance; the tiles; the tracks)."""
         q: queue.Queue = queue.Queue(CLIENT_QUEUE)
         with self._lock:
-            hello = _sse("hello", {"vehicle": self.vehicle, "tiles": len(self._tiles)})
-            track = _sse("track", {"vehicle": self.vehicle, "points": list(self._track), "reset": True})
-            snapshot = [hello, *self._tiles.values(), *(e for e in (self._status, self._avoidance) if e), track]
+            hello = _sse("hello", {"station": self.name, "vehicles": list(self._order), "tiles": len(self._tiles)})
+            states = [self._state[(v, k)] for v in self._order for k in ("frame", "status", "avoidance") if (v, k) in self._state]
+            tracks = [_sse("track", {"vehicle": v, "points": list(t), "reset": True}) for v, t in self._track.items()]
+            snapshot = [hello, *states, *self._tiles.values(), *tracks]
             self._clients.add(q)
             self.counts["clients"] += 1
         return q, snapshot
@@ -152,9 +191,24 @@ class LiveFeed:
             return None if event is None else json.loads(event.decode().split("data: ", 1)[1])
 
         with self._lock:
-            return {"vehicle": self.vehicle, "tiles": [data(e) for e in self._tiles.values()],
-                    "status": data(self._status), "avoidance": data(self._avoidance), "track": list(self._track),
+            return {"station": self.name, "vehicles": {
+                        v: {"status": data(self._state.get((v, "status"))), "avoidance": data(self._state.get((v, "avoidance"))),
+                            "offset_m": self._offsets.get(v), "track": list(self._track.get(v, []))} for v in self._order},
+                    "tiles": [data(e) for e in self._tiles.values()],
                     "counts": dict(self.counts), "browsers": len(self._clients)}
+
+
+def _local_frame(status: dict) -> Any:
+    """The vehicle's local frame from its status (``frame``, docs/zenoh.md), None until it has an origin."""
+    from companion.method.geodesy import LocalFrame
+
+    frame = status.get("frame") if isinstance(status, dict) else None
+    if not isinstance(frame, dict) or not isinstance(frame.get("origin"), dict):
+        return None
+    try:
+        return LocalFrame.from_dict({**frame, "projection": frame.get("projection") or "ardupilot"})
+    except (KeyError, TypeError, ValueError):
+        return None
 
 
 def _finite(doc: Any) -> Any:
