@@ -298,10 +298,9 @@ def test_a_nadir_survey_camera_is_not_taken_for_a_rolled_one(tmp_path):
 
 
 def test_implausible_inputs_get_a_warning_naming_the_likely_mistake(tmp_path, capsys):
-    """A user's recording with world-to-camera poses, the up axis reversed, or timestamps in
-    microseconds: the console says which, naming the recording, whatever the map became. (Quaternions
-    written w first are caught when they leave the camera looking up, rolled or underground; in this
-    flight they give a level camera, which a forward-looking mount can be, and are not.)"""
+    """A user's recording with world-to-camera poses, the up axis reversed, quaternions written w
+    first, or timestamps in microseconds: the console says which, naming the recording, whatever the
+    map became."""
     def replay(folder):
         rc = cli.main(["replay", str(folder), "-o", str(tmp_path / f"out-{folder.name}"), "--no-progress"])
         return rc, capsys.readouterr().err
@@ -331,6 +330,16 @@ def test_implausible_inputs_get_a_warning_naming_the_likely_mistake(tmp_path, ca
     (upside / "meta.yaml").write_text(yaml.safe_dump({**meta, "world_up": "-z"}))
     rc, err = replay(upside)
     assert f"companion replay: warning: {upside}: the camera looks above the horizon in 60 of 60 frames" in err
+
+    # Quaternions written w first: a level camera, which a forward-looking mount can be, so no
+    # warning; but the corners are rarely where the poses predict them, and nothing converges.
+    wfirst = rs.write_tum(tmp_path / "wfirst", rs.flight(), WorldFrame("z", "x"))
+    _rewrite_poses(wfirst, lambda t, xyz, q: (t, xyz, np.r_[q[3], q[:3]]))
+    rc, err = replay(wfirst)
+    assert rc == EXIT_NOTHING_MAPPED and re.search(
+        rf"companion replay: {re.escape(str(wfirst))}: 60 frames mapped but no feature converged \(\d+ feature updates, \d+ "
+        r"features started\): the features rarely match from frame to frame \(\d+ of 6000 detections\): poses that do not "
+        r"match the images \(world-to-camera where camera-to-world is expected, quaternions in another order than x y z w", err)
 
     # Timestamps in microseconds, in both files: frames 66,667 s apart.
     micro = rs.write_tum(tmp_path / "micro", rs.flight(), WorldFrame("z", "x"), t0=1.0)

@@ -217,8 +217,14 @@ def nothing_mapped(m: dict[str, Any], path: Path) -> str | None:
         return f"{path}: {m['frames_processed']} of {listed} frames mapped, nothing in the map: " + "; ".join(parts)
     mp = m["mapper"]
     if m["converged_points"] == 0:
-        return (f"{path}: {m['frames_processed']} frames mapped but no feature converged ({mp['matched']} feature updates, "
-                f"{mp['initialised']} features started): too little motion between frames, or too little texture")
+        head = (f"{path}: {m['frames_processed']} frames mapped but no feature converged ({mp['matched']} feature updates, "
+                f"{mp['initialised']} features started)")
+        if m["frames_processed"] >= RARE_MATCH_MIN_FRAMES and mp["matched"] < RARE_MATCH_FRACTION * max(1, mp["measurements"]):
+            # Corners are found but seldom where the poses predict them from one frame to the next.
+            return (f"{head}: the features rarely match from frame to frame ({mp['matched']} of {mp['measurements']} "
+                    "detections): poses that do not match the images (world-to-camera where camera-to-world is expected, "
+                    "quaternions in another order than x y z w, the wrong camera.yaml) or frames too far apart")
+        return f"{head}: too little motion between frames, or too little texture"
     if mp["points_rejected_invalid"] >= m["converged_points"]:
         return (f"{path}: all {m['converged_points']} converged points rejected as invalid by the map: coordinates beyond "
                 f"terrain.max_abs_coordinate_m, or non-finite; a geo-referenced world needs a local origin ('origin: auto' "
@@ -228,6 +234,8 @@ def nothing_mapped(m: dict[str, Any], path: Path) -> str | None:
 
 
 LOOKS_UP_DEG = 5.0           # an optical axis this far above the horizon looks up
+RARE_MATCH_FRACTION = 0.1    # fewer feature updates than this share of the detections: the poses do not fit the images
+RARE_MATCH_MIN_FRAMES = 10   # (a good recording matches about 0.4 of them; a few frames say little)
 ROLLED_DEG = 60.0            # an image whose "down" is this far from the world's down is rolled over
 NEAR_NADIR_DEG = 10.0        # an optical axis this close to straight down has no "upright": any roll is a heading
 IMPLAUSIBLE_FRACTION = 0.5   # warn when more of the frames than this show the same mistake
