@@ -166,7 +166,7 @@ def test_every_command_routes_to_a_module_of_its_layer():
     from companion.cli import COMMANDS
 
     expected = {"run": "service", "demo": "desk", "replay": "desk", "quality": "desk", "sim": "drivers",
-                "ground": "drivers", "config": "config_cli"}
+                "ground": "drivers", "router": "drivers", "config": "config_cli"}
     assert set(COMMANDS) == set(expected)
     for command, (module, _) in COMMANDS.items():
         assert importlib.util.find_spec(module) is not None, f"companion {command}: no module {module}"
