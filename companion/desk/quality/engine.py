@@ -39,7 +39,7 @@ from companion.config import CompanionConfig
 from companion.method.control import Controller
 from companion.method.geometry import camera_from_config
 from companion.method.mapper import Mapper
-from companion.method.mapper.features import HarrisDetector, as_gray
+from companion.method.mapper.features import HarrisDetector
 from companion.method.messages import NavState
 from companion.method.navigation.assembler import NavAssembler
 from companion.method.terrain.grid import TerrainGrid
@@ -180,12 +180,14 @@ def _law_height_over(grid: TerrainGrid, centres: np.ndarray, k_sigma: float) -> 
 
 
 def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = None,
-        world=None, renderer=None, on_frame: Callable[..., None] | None = None) -> FlightRecord:
+        world=None, renderer=None, on_frame: Callable[..., None] | None = None,
+        law_view: Callable[[TerrainGrid], Any] | None = None) -> FlightRecord:
     """Take off at the circuit's first waypoint and fly ``laps`` laps with the service's mapper, map
     and control in the loop. ``cfg`` is the flight's configuration (companion/quality/scenarios.py,
     ``flight_config``); ``world`` and ``renderer`` may be given to reuse them across flights.
     ``on_frame(t, truth, p_c, R_nc, image, step, mapper, nav, grid)`` is called after each mapped
-    frame (diagnostics). Never raises for a flight that goes wrong: ``complete`` is False and
+    frame (diagnostics); ``law_view(grid)`` is what the law reads instead of the grid (another
+    vehicle's evidence fused in: companion/method/terrain/sharing.py). Never raises for a flight that goes wrong: ``complete`` is False and
     ``problem`` says why."""
     from drivers.sim.ardupilot import GUIDED, ArduPilotCopter
     from drivers.sim.renderer import Renderer, RenderOptions
@@ -255,7 +257,7 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
                 next_control += control_dt
                 nav = feed((mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION))
                 if nav is not None:
-                    decision = controller.decide(nav, grid)
+                    decision = controller.decide(nav, grid if law_view is None else law_view(grid))
                     if decision.send:
                         flying = True
                         ap.handle(velocity_setpoint(decision.velocity_ned_mps, decision.yaw_rad), link)
