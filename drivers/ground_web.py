@@ -39,6 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from companion.method.geodesy import LocalFrame
+
 log = logging.getLogger("companion.ground.web")
 
 PAGE = Path(__file__).with_name("ground_web_page.html")
@@ -98,7 +100,7 @@ class LiveFeed:
             n += self._publish(_sse("tile", tile_event(vehicle, gmap.tiles[index])), tile=(vehicle, *index))
         if status and gmap.status is not None:
             n += self._publish(_sse("status", {"vehicle": vehicle, **_finite(gmap.status)}), state=(vehicle, "status"))
-            frame = _local_frame(gmap.status)
+            frame = LocalFrame.from_status(gmap.status)
             if frame != self._frames.get(vehicle):
                 self._frames[vehicle] = frame
                 n += self._place()
@@ -196,19 +198,6 @@ class LiveFeed:
                             "offset_m": self._offsets.get(v), "track": list(self._track.get(v, []))} for v in self._order},
                     "tiles": [data(e) for e in self._tiles.values()],
                     "counts": dict(self.counts), "browsers": len(self._clients)}
-
-
-def _local_frame(status: dict) -> Any:
-    """The vehicle's local frame from its status (``frame``, docs/zenoh.md), None until it has an origin."""
-    from companion.method.geodesy import LocalFrame
-
-    frame = status.get("frame") if isinstance(status, dict) else None
-    if not isinstance(frame, dict) or not isinstance(frame.get("origin"), dict):
-        return None
-    try:
-        return LocalFrame.from_dict({**frame, "projection": frame.get("projection") or "ardupilot"})
-    except (KeyError, TypeError, ValueError):
-        return None
 
 
 def _finite(doc: Any) -> Any:

@@ -285,6 +285,7 @@ class ZenohBus:
         self._reopener: threading.Thread | None = None
         self._opened = False
         self._link_up_seen: bool | None = None  # None until the first look at the links
+        self._listeners: list[Callable[[zenoh.Session], list]] = []
 
     # ---- lifecycle -------------------------------------------------------------------------
 
@@ -406,10 +407,30 @@ class ZenohBus:
             k.avoidance, encoding=AVOIDANCE_ENCODING, congestion_control=zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.INTERACTIVE_HIGH,
         )
+        for declare in self._listeners:
+            declared += declare(session)
         with self._lock:
             self._session = session
             self._declared = declared + [status_pub, avoid_pub]
             self._status_pub, self._avoid_pub = status_pub, avoid_pub
+
+    def add_listener(self, declare: Callable[[zenoh.Session], list]) -> None:
+        """Subscriptions that live as long as the bus (other vehicles' maps, drivers/fleet_listener.py):
+        ``declare(session)`` returns what it declared, and is run on the open session now and on
+        every session the bus opens again; the bus undeclares it all on close."""
+        self._listeners.append(declare)
+        with self._lock:
+            session = self._session
+        if session is not None:
+            entities = declare(session)
+            with self._lock:
+                self._declared += entities
+
+    def get(self, selector: str, timeout_s: float) -> list:
+        """The replies to a query on the bus's session (none while it has no session)."""
+        with self._lock:
+            session = self._session
+        return [] if session is None else list(session.get(selector, timeout=timeout_s))
 
     def _republish_cache(self) -> None:
         with self._lock:

@@ -198,6 +198,16 @@ def start_flight(tmp: Path, speedup: float, *daemon_args: str, camera: str = "sy
     return pilot, sim, daemon
 
 
+def end_flight(listener, daemon, sim, pilot) -> int:
+    """Close the subscriber, stop the daemon (its exit status), the simulator and the operator's link."""
+    if listener:
+        listener.close()
+    rc = stop(daemon)
+    sim.stop()
+    pilot.close()
+    return rc
+
+
 def known_cells(tiles: dict[str, bytes]) -> int:
     return sum(int(np.count_nonzero(decode_tile(payload).count > 0)) for payload in list(tiles.values()))
 
@@ -249,11 +259,7 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
             pilot.recv("LOCAL_POSITION_NED", 0.5)
         status = listener.latest_status()
     finally:
-        if listener:
-            listener.close()
-        rc = stop(daemon)
-        sim.stop()
-        pilot.close()
+        rc = end_flight(listener, daemon, sim, pilot)
     assert rc == 0
     print("\n".join(map(str, track[::20])))
     assert early_climb is not None, "no climb commanded for the building before reaching it"
@@ -363,3 +369,64 @@ def test_recorded_flight_replays_to_the_same_map_also_after_tum_export(tmp_path)
           f"median |replay - live| {np.median(np.abs(diff)):.3f} m, 90th percentile {np.percentile(np.abs(diff), 90):.3f} m")
     assert len(common) > 0.6 * min(len(live), len(replayed))
     assert np.median(np.abs(diff)) < 0.3
+
+
+def test_a_wall_another_vehicle_mapped_makes_the_law_climb_before_the_camera_sees_it(tmp_path):
+    """The daemon reads other vehicles' maps (``zenoh.share_from: ["*"]``). A second vehicle on the
+    same Zenoh network ("scout", same EKF origin) publishes a 30 m wall 40 m up the circuit's first
+    leg, where the world has flat ground: the daemon's law climbs for it before the vehicle gets
+    there, the wall it publishes itself is not in its own map, and its status names the source."""
+    from companion.config import ZenohConfig
+    from companion.method.terrain.codec import encode_tile
+    from companion.method.terrain.tile import Tile
+    from drivers.zenoh_bus import ZenohBus
+
+    zport = free_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    pilot, sim, daemon = start_flight(tmp_path, 3.0, zenoh={"enabled": True, "listen": [endpoint], "status_rate_hz": 2.0,
+                                                            "share_from": ["*"]})
+    listener = scout = None
+    found = None
+    try:
+        listener = ZenohListener(endpoint)
+        scout = ZenohBus(ZenohConfig(mode="peer", connect=(endpoint,), vehicle_name="scout", multicast_scouting=False,
+                                     reconnect_min_s=0.2, reconnect_max_s=0.5))
+        scout.open()
+        origin = listener.wait_status(lambda s: (s.get("frame") or {}).get("origin") is not None, 30.0)["frame"]
+        h = np.full((32, 32), np.nan, np.float32)
+        v = np.full((32, 32), np.inf, np.float32)
+        n = np.zeros((32, 32), np.uint32)
+        h[8:10], v[8:10], n[8:10] = 30.0, 0.1, 6  # north 40-41
+        for ty in (-1, 0):  # east -32..31
+            scout.publish_tile(1, ty, encode_tile(Tile(1, ty, h, v, n, cell_size_m=1.0), deflate=True))
+        take_off(pilot)
+        deadline = time.monotonic() + 60
+        north = 0.0
+        while time.monotonic() < deadline and north < 40.0:
+            scout.publish_status({"frame": origin})  # its origin is the daemon's: offset zero
+            msg = pilot.recv("LOCAL_POSITION_NED", 0.5)
+            if msg is not None:
+                north = msg.x
+            while not listener.avoidance.empty():
+                a = listener.avoidance.get()
+                cell = a.get("limiting_cell")
+                if (found is None and a["engaged"] and cell is not None and 39.0 <= cell[0] <= 42.0
+                        and (a.get("limiting_height_m") or 0.0) > 25.0 and a["climb_rate_mps"] > 0.5 and north < 39.0):
+                    found = (round(north, 1), a)
+        status = listener.latest_status()
+    finally:
+        if scout is not None:
+            scout.close()
+        rc = end_flight(listener, daemon, sim, pilot)
+    assert rc == 0
+    assert found is not None, "no climb for the shared wall before reaching it"
+    print(f"\nclimbing for the scout's 30 m wall at north {found[0]} m: {found[1]['limiting_height_m']} m, "
+          f"{found[1]['climb_rate_mps']} m/s")
+    assert status["sharing"]["sources"] == ["scout"] and status["sharing"]["tiles_applied"] >= 2
+    # Its own published map never takes the scout's wall in: no cell of it holds the wall's 30 m.
+    assert status["map"]["cells"] > 0
+    copied = [k for k, payload in listener.tiles.items() if np.any(np.abs(decode_tile(payload).height - 30.0) < 0.01)]
+    tall = {k: round(float(np.nanmax(decode_tile(p).height)), 1) for k, p in listener.tiles.items()
+            if np.nanmax(decode_tile(p).height, initial=-1.0) > 5.0}
+    print(f"own tiles with cells above 5 m over the flat ground (the climb's pitch): {tall}")
+    assert not copied

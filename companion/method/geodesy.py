@@ -25,6 +25,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from typing import Any
+
 import numpy as np
 
 PROJECTIONS = ("ardupilot", "px4", "wgs84")
@@ -55,6 +57,18 @@ class LocalFrame:
         """From the ``frame`` object of the status (docs/zenoh.md)."""
         o = d["origin"]
         return cls(float(o["lat_deg"]), float(o["lon_deg"]), float(o["alt_m"]), str(d.get("projection", "ardupilot")))
+
+    @classmethod
+    def from_status(cls, status: Any) -> "LocalFrame | None":
+        """The sender's frame from a ``companion.status/1`` document, None while it has no origin
+        (or the document is not one)."""
+        frame = status.get("frame") if isinstance(status, dict) else None
+        if not isinstance(frame, dict) or not isinstance(frame.get("origin"), dict):
+            return None
+        try:
+            return cls.from_dict({**frame, "projection": frame.get("projection") or "ardupilot"})
+        except (KeyError, TypeError, ValueError):
+            return None
 
     def to_geodetic(self, ned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(N, 3) local NED (m) -> latitude, longitude (deg) and altitude (m), each (N,)."""

@@ -188,6 +188,8 @@ class Daemon:
         self._snapshot_executor: concurrent.futures.ThreadPoolExecutor | None = None
         self.camera: Any = None
         self.bus: Any = None
+        self.fleet: Any = None      # other vehicles' maps for the law (zenoh.share_from)
+        self.shared: Any = None
         self.recorder: Any = None
         self._stop = asyncio.Event()
         self._map_updated = asyncio.Event()
@@ -464,7 +466,7 @@ class Daemon:
             self.command_state = f"navigation stale ({age:.2f} s old)"
             return False
         with self.grid_lock:
-            decision = self.controller.decide(nav, self.grid)
+            decision = self.controller.decide(nav, self._law_map())
             self._updates_in_setpoint = len(self._map_updates)  # the updates this law has seen
         cmd, velocity = decision.command, decision.velocity_ned_mps
         self.last_command = cmd
@@ -494,6 +496,20 @@ class Daemon:
         if self.bus is not None and self._avoidance_due(now, cmd.engaged, sent):
             self.bus.publish_avoidance(self.avoidance_body(cmd, velocity, sent, nav))
         return True
+
+    def _law_map(self):
+        """What the law reads: the own grid, with other vehicles' evidence fused in when
+        ``zenoh.share_from`` names any (companion/method/terrain/sharing.py). Under grid_lock."""
+        if self.fleet is None:
+            return self.grid
+        from companion.method.geodesy import LocalFrame
+        from companion.method.terrain.sharing import SharedView
+
+        origin, flavour = self.link.assembler.origin, self.link.flavour
+        own = None if origin is None else LocalFrame(origin.lat_deg, origin.lon_deg, origin.alt_m,
+                                                     flavour if flavour in ("ardupilot", "px4") else "ardupilot")
+        self.fleet.drain(self.shared, own, self.cfg.zenoh.share_weight)
+        return SharedView(self.grid, self.shared, self.cfg.terrain.gate_sigma)
 
     def _avoidance_due(self, now: float, engaged: bool, sent: bool) -> bool:
         """Publish the avoidance state at ``zenoh.avoidance_rate_hz``, and at once when the law
@@ -588,6 +604,7 @@ class Daemon:
                 "step_ms": self.step_ms.summary(), "step_cpu_ms": self.step_cpu_ms.summary(),
             },
             "map": {**grid, "rejections": dict(self.grid_rejections)},
+            "sharing": None if self.fleet is None else self.fleet.status(),
             "frame": frame_status(self.link.assembler.origin, self.link.flavour),
             "avoidance": None if self.last_command is None else {
                 "engaged": self.last_command.engaged, "climb_rate_mps": round(self.last_command.climb_rate_mps, 3),
@@ -675,6 +692,14 @@ class Daemon:
 
             self.bus = ZenohBus(self.cfg.zenoh)  # answers map queries from the tiles it published
             await asyncio.to_thread(self.bus.open)
+            if self.cfg.zenoh.share_from:
+                from companion.method.terrain.sharing import SharedEvidence
+                from drivers.fleet_listener import FleetListener
+
+                self.shared = SharedEvidence(self.cfg.zenoh.vehicle_name, self.grid.cell_size_m, self.grid.tile_cells)
+                self.fleet = FleetListener(self.cfg.zenoh).open(self.bus)  # on the bus's session, closed with it
+                log.info("reading other vehicles' maps: %s (trust %g)", ", ".join(self.cfg.zenoh.share_from),
+                         self.cfg.zenoh.share_weight)
         if self.record_dir:
             from drivers.cameras.recorder import FrameRecorder
 

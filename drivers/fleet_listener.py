@@ -1,0 +1,166 @@
+"""Other vehicles' maps for this vehicle's avoidance law (``zenoh.share_from``; docs/terrain.md,
+"Evidence from other vehicles"; docs/zenoh.md, "Sharing the map between vehicles").
+
+On the service's own Zenoh session (the bus's), it subscribes to the tiles and statuses of
+the vehicles it is told to listen to, asks each for its whole map when its liveliness token
+appears (a vehicle that joins late, or comes back), and queues what arrives. The service drains the
+queue on its own thread (:meth:`FleetListener.drain`) into a
+:class:`companion.method.terrain.sharing.SharedEvidence`: a source is placed once both its origin
+(its status's ``frame``) and this vehicle's are known; its tiles wait until then. This vehicle's
+own keys, the ``zenoh.share_ignore`` list and malformed samples are counted and dropped.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+from collections import Counter
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from companion.config import ZenohConfig
+from drivers.zenoh_bus import KEY_ROOT, STATUS_SCHEMA
+
+log = logging.getLogger("companion.fleet")
+MAX_QUEUE = 20_000
+
+
+class FleetListener:
+    """Subscriptions to other vehicles' tiles and statuses (module docstring)."""
+
+    def __init__(self, cfg: ZenohConfig) -> None:
+        self.cfg = cfg
+        self.own = cfg.vehicle_name
+        self.sources = tuple(cfg.share_from)
+        self.ignore = set(cfg.share_ignore)
+        self._q: queue.Queue = queue.Queue(MAX_QUEUE)
+        self._bus = None
+        self._frames: dict[str, Any] = {}                 # source -> LocalFrame (from its status)
+        self._pending: dict[str, dict[tuple[int, int], Any]] = {}  # tiles of sources not placed yet
+        self._placed_with: dict[str, Any] = {}            # source -> the own frame it was placed in
+        self._wanted: set[str] = set()                    # sources whose map to ask for
+        self.counts = Counter()
+
+    # ---- Zenoh side (its threads) ------------------------------------------------------------
+
+    def _roots(self) -> list[str]:
+        return [f"{KEY_ROOT}/*"] if self.sources == ("*",) else [f"{KEY_ROOT}/{v}" for v in self.sources]
+
+    def open(self, bus) -> "FleetListener":
+        """Listen on ``bus``'s session (a :class:`drivers.zenoh_bus.ZenohBus`): the subscriptions
+        follow the bus through reconnections and close with it."""
+        self._bus = bus
+        bus.add_listener(self._declare)
+        return self
+
+    def _declare(self, session) -> list:
+        declared = []
+        for root in self._roots():
+            declared += [
+                session.declare_subscriber(f"{root}/terrain/tile/*/*", self._on_sample),
+                session.declare_subscriber(f"{root}/status", self._on_sample),
+                session.liveliness().declare_subscriber(f"{root}/alive", self._on_alive, history=True),
+            ]
+        return declared
+
+    def _source_of(self, key: str) -> str | None:
+        parts = key.split("/")
+        if len(parts) < 3 or parts[0] != KEY_ROOT:
+            return None
+        source = parts[1]
+        if source == self.own:
+            self.counts["own_ignored"] += 1  # never take one's own evidence back
+            return None
+        if source in self.ignore or (self.sources != ("*",) and source not in self.sources):
+            self.counts["ignored"] += 1
+            return None
+        return source
+
+    def _on_sample(self, sample) -> None:
+        key = str(sample.key_expr)
+        source = self._source_of(key)
+        if source is None:
+            return
+        try:
+            self._q.put_nowait((source, key, sample.payload.to_bytes()))
+        except queue.Full:
+            self.counts["dropped"] += 1
+
+    def _on_alive(self, sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            source = self._source_of(str(sample.key_expr))
+            if source is not None:
+                self._wanted.add(source)
+
+    def _ask(self) -> None:
+        """The whole map of each source that (re)appeared: a late joiner starts with what it has."""
+        while self._wanted:
+            source = self._wanted.pop()
+            for reply in self._bus.get(f"{KEY_ROOT}/{source}/terrain/tile/**", 5.0):
+                if reply.ok is not None:
+                    self._on_sample(reply.ok)
+
+    # ---- the service's side (its thread) -----------------------------------------------------
+
+    def drain(self, shared, own_frame, weight: float = 1.0) -> int:
+        """Apply what arrived to ``shared`` (a ``SharedEvidence``), placing each source from its
+        origin and ``own_frame`` (a ``LocalFrame``, None while this vehicle has no origin: tiles
+        wait). Returns the tiles applied."""
+        from companion.method.geodesy import place_cells
+        from companion.method.terrain.codec import decode_tile
+
+        if self._bus is not None and self._wanted:
+            threading.Thread(target=self._ask, name="companion-fleet-query", daemon=True).start()
+        applied = 0
+        while True:
+            try:
+                source, key, payload = self._q.get_nowait()
+            except queue.Empty:
+                break
+            if key.endswith("/status"):
+                frame = _frame_of(payload)
+                if frame is None:
+                    self.counts["status_without_origin"] += 1
+                else:
+                    self._frames[source] = frame
+                continue
+            try:
+                tile = decode_tile(payload)
+            except ValueError as exc:
+                self.counts["bad_tiles"] += 1
+                log.debug("fleet: %s: %s", key, exc)
+                continue
+            self._pending.setdefault(source, {})[(tile.tx, tile.ty)] = tile
+        for source, frame in self._frames.items():
+            if own_frame is None:
+                break
+            if self._placed_with.get(source) != (own_frame, frame):
+                north, east, up = place_cells(np.zeros(1), np.zeros(1), np.zeros(1), frame, own_frame)
+                shared.set_frame(source, (float(north[0]), float(east[0]), float(up[0])), weight)
+                self._placed_with[source] = (own_frame, frame)
+            for tile in self._pending.pop(source, {}).values():
+                if shared.put(source, tile):
+                    applied += 1
+                else:
+                    self.counts["tiles_refused"] += 1
+        self.counts["tiles_applied"] += applied
+        return applied
+
+    def status(self) -> dict[str, Any]:
+        return {"sources": sorted(self._frames), "waiting_for_origin": sorted(set(self._pending) - set(self._frames)),
+                **dict(self.counts)}
+
+
+def _frame_of(payload: bytes):
+    """The sender's local frame from a ``companion.status/1`` payload, None without an origin."""
+    from companion.method.geodesy import LocalFrame
+
+    try:
+        doc = json.loads(bytes(payload).decode("utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        return None
+    return LocalFrame.from_status(doc) if isinstance(doc, dict) and doc.get("schema") == STATUS_SCHEMA else None

@@ -1,0 +1,88 @@
+"""Other vehicles' maps reach this vehicle's law over a real Zenoh session on loopback
+(drivers/fleet_listener.py into companion/method/terrain/sharing.py): placed from the two EKF
+origins, fetched whole when a vehicle appears, counted once, never one's own, never an ignored one."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from companion.config import ZenohConfig
+from companion.method.geodesy import LocalFrame
+from companion.method.terrain.codec import encode_tile
+from companion.method.terrain.sharing import SharedEvidence
+from companion.method.terrain.tile import Tile
+from drivers.fleet_listener import FleetListener
+from drivers.zenoh_bus import ZenohBus
+from tests.processes import free_port
+
+T = 32
+ORIGIN = {"lat_deg": 47.397742, "lon_deg": 8.545594, "alt_m": 488.0, "source": "GPS_GLOBAL_ORIGIN"}
+NORTH_50_M = 50.0 / 111_194.9
+
+
+def cfg(**kw) -> ZenohConfig:
+    base = dict(mode="peer", multicast_scouting=False, reconnect_min_s=0.2, reconnect_max_s=0.5)
+    return ZenohConfig(**{**base, **kw})
+
+
+def wall(tx: int, ty: int, height: float) -> Tile:
+    h = np.full((T, T), np.nan, np.float32)
+    v = np.full((T, T), np.inf, np.float32)
+    n = np.zeros((T, T), np.uint32)
+    h[10:12], v[10:12], n[10:12] = height, 0.3, 5
+    return Tile(tx, ty, h, v, n, cell_size_m=1.0)
+
+
+def status(bus, lat_offset_deg: float) -> None:
+    bus.publish_status({"frame": {"axes": "NED", "projection": "ardupilot",
+                                  "origin": {**ORIGIN, "lat_deg": ORIGIN["lat_deg"] + lat_offset_deg}}})
+
+
+def drain_until(listener, shared, own, done, timeout_s: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        listener.drain(shared, own)
+        if done():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_another_vehicle_s_wall_is_placed_from_the_origins_and_counted_once():
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    own = LocalFrame(ORIGIN["lat_deg"], ORIGIN["lon_deg"], ORIGIN["alt_m"])
+    with ZenohBus(cfg(listen=(ep,), vehicle_name="v2")) as v2:
+        # Published before the listener exists: fetched when v2's liveliness token is seen.
+        v2.publish_tile(0, 0, encode_tile(wall(0, 0, 9.0), deflate=True))
+        host = ZenohBus(cfg(connect=(ep,), vehicle_name="v1"))  # this vehicle's bus: the listener uses its session
+        host.open()
+        listener = FleetListener(cfg(connect=(ep,), vehicle_name="v1", share_from=("*",), share_ignore=("v3",))).open(host)
+        try:
+            shared = SharedEvidence("v1", 1.0, T)
+            with ZenohBus(cfg(connect=(ep,), vehicle_name="v3")) as v3:
+                host.publish_tile(5, 5, encode_tile(wall(5, 5, 30.0)))  # our own, heard back
+                v3.publish_tile(6, 6, encode_tile(wall(6, 6, 30.0)))   # a vehicle we ignore
+                status(v3, 0.0)
+                assert drain_until(listener, shared, own, lambda: listener.counts["own_ignored"] > 0
+                                   and listener.counts["ignored"] > 0, 10.0)
+                # No origin from v2 yet: its tile waits.
+                assert shared.sources == [] and listener.status()["waiting_for_origin"] == ["v2"]
+                deadline = time.monotonic() + 10
+                while not shared.sources and time.monotonic() < deadline:
+                    status(v2, NORTH_50_M)  # v2's origin is 50 m north of ours
+                    listener.drain(shared, own)
+                    time.sleep(0.1)
+            assert shared.sources == ["v2"] and listener.counts["tiles_applied"] == 1
+            h, v, n = shared.lookup("v2", np.array([10 + 50, 11 + 50, 10]), np.array([3, 3, 3]))
+            assert h[0] == pytest.approx(9.0, abs=0.01) and n[0] == 5 and h[1] == pytest.approx(9.0, abs=0.01) and np.isnan(h[2])
+            # The same tile again (republished): the evidence is the same, not doubled.
+            for _ in range(3):
+                v2.publish_tile(0, 0, encode_tile(wall(0, 0, 9.0), deflate=True))
+            assert drain_until(listener, shared, own, lambda: listener.counts["tiles_applied"] >= 2)
+            again = shared.lookup("v2", np.array([60]), np.array([3]))
+            assert (float(again[0][0]), float(again[1][0]), int(again[2][0])) == (float(h[0]), float(v[0]), int(n[0]))
+        finally:
+            host.close()
