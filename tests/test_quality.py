@@ -397,3 +397,50 @@ def test_demo_service_configuration_layers_in_order(tmp_path):
     assert cfg.avoidance.clearance_m == 11.0 and world.clearance_m == 11.0  # the demo's figures use it too
     assert cfg.avoidance.nominal_alt_m == 18.0 and cfg.control.cruise_speed_mps == 8.0  # the circuit's
     assert cfg.link.connection == "tcp:127.0.0.1:5760" and cfg.control.commanding_enabled  # the demo's own
+
+
+SHORT_WORLD = """
+name: short_box
+description: a 9 m block on a short circuit (the shared-first-pass test)
+seed: 3
+sun_azimuth_deg: 210.0
+sun_elevation_deg: 50.0
+ambient: 0.45
+ground:
+  texture: fields
+boxes:
+  - name: block
+    center_ne_m: [70.0, 0.0]
+    size_m: [10.0, 14.0]
+    height_m: 9.0
+    yaw_deg: 0.0
+    wall_texture: windows
+    textured_height_m: 9.0
+    roof_texture: fields
+circuit:
+  waypoints_ne_m: [[0.0, 0.0], [110.0, 0.0], [110.0, 20.0], [0.0, 20.0]]
+  altitude_agl_m: 12.0
+  speed_mps: 6.0
+  clearance_m: 12.0
+"""
+
+
+def test_the_shared_first_pass_flies_a_scout_then_the_lap_alone_and_with_its_map(tmp_path):
+    """``companion quality --shared-first-pass 1``: the scout's map holds the block, and the report gives
+    the first pass alone and with that map (companion/desk/quality/fleet.py)."""
+    world = tmp_path / "short_box.yaml"
+    world.write_text(SHORT_WORLD)
+    out = tmp_path / "shared"
+    proc = subprocess.run([sys.executable, "-m", "companion.cli", "quality", "--scenario", str(world), "--seeds", "1",
+                           "--shared-first-pass", "1", "--jobs", "1", "--output", str(out)],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    (row,) = json.loads((out / "shared.json").read_text())["results"]
+    (block,) = row["obstacles"]
+    print(f"\nshort_box: first pass alone {block['alone']:.2f}, with the scout's map {block['shared']:.2f}; "
+          f"the scout's map holds {block['scout_mapped_height_m']:.1f} of {block['height_m']:.1f} m")
+    assert block["obstacle"] == "block" and block["scout_mapped_height_m"] > 0.5 * block["height_m"]
+    assert math.isfinite(block["alone"]) and math.isfinite(block["shared"])
+    assert block["shared"] >= block["alone"] - 0.1  # the scout's map never makes the pass worse here
+    md = (out / "shared.md").read_text()
+    assert f"| {row['scenario']} | 1 | block | {block['alone']:.2f} | {block['shared']:.2f} |" in md

@@ -398,6 +398,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="a Markdown file put into quality.md after the tables (what the figures mean, written by a person; read when the flights are done)")
     p.add_argument("--output", default="quality-report",
                    help="folder for quality.json, quality.md and quality/*.png (docs = the committed table)")
+    p.add_argument("--shared-first-pass", type=int, metavar="SCOUT_LAPS",
+                   help="instead of the suite: per scenario and seed, a scout flies SCOUT_LAPS laps, then the first lap "
+                        "is flown alone and with the scout's map (inverse depth); writes shared.md and shared.json")
 
 
 def _mmss(seconds: float) -> str:
@@ -451,9 +454,16 @@ def main(args: argparse.Namespace) -> int:
         # Every scenario and override is validated before any flight starts.
         for s in scenarios:
             flight_config(World.load(s), s, params[0], seeds[0], CAMERA_RATE_HZ, overrides)
+        if args.shared_first_pass is not None and not 1 <= args.shared_first_pass <= 20:
+            raise ConfigError(f"--shared-first-pass must be within 1..20 laps, got {args.shared_first_pass}")
     except ConfigError as exc:
         print(f"companion quality: {exc}", file=sys.stderr)
         return 2
+    if args.shared_first_pass is not None:
+        from companion.desk.quality import fleet
+
+        command = "companion quality " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else "companion quality"
+        return fleet.run(scenarios, seeds, args.shared_first_pass, overrides, args.jobs, Path(args.output), command)
     jobs = [(s, seed, p, laps, overrides) for s in scenarios for p in params for seed in seeds]
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
