@@ -7,7 +7,9 @@ appears (a vehicle that joins late, or comes back), and queues what arrives. The
 queue on its own thread (:meth:`FleetListener.drain`) into a
 :class:`companion.method.terrain.sharing.SharedEvidence`: a source is placed once both its origin
 (its status's ``frame``) and this vehicle's are known; its tiles wait until then. This vehicle's
-own keys, the ``zenoh.share_ignore`` list and malformed samples are counted and dropped.
+own keys, the ``zenoh.share_ignore`` list and malformed samples are counted and dropped. A
+vehicle's name put on ``companion/<this vehicle>/sharing/withdraw`` withdraws its evidence while the
+service runs (and ignores it until restart).
 """
 
 from __future__ import annotations
@@ -58,7 +60,9 @@ class FleetListener:
         return self
 
     def _declare(self, session) -> list:
-        declared = []
+        # The operator's word: put a vehicle's name on companion/<this vehicle>/sharing/withdraw and
+        # its evidence leaves the law's map, and is not read again until the service restarts.
+        declared = [session.declare_subscriber(f"{KEY_ROOT}/{self.own}/sharing/withdraw", self._on_withdraw)]
         for root in self._roots():
             declared += [
                 session.declare_subscriber(f"{root}/terrain/tile/*/*", self._on_sample),
@@ -89,6 +93,14 @@ class FleetListener:
             self._q.put_nowait((source, key, sample.payload.to_bytes()))
         except queue.Full:
             self.counts["dropped"] += 1
+
+    def _on_withdraw(self, sample) -> None:
+        try:
+            source = sample.payload.to_bytes().decode("utf-8").strip()
+        except UnicodeDecodeError:
+            source = ""
+        if source:
+            self._q.put((source, "withdraw", b""))
 
     def _on_alive(self, sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:
@@ -121,6 +133,15 @@ class FleetListener:
                 source, key, payload = self._q.get_nowait()
             except queue.Empty:
                 break
+            if key == "withdraw":
+                self.ignore.add(source)
+                shared.withdraw(source)
+                self._frames.pop(source, None)
+                self._pending.pop(source, None)
+                self._placed_with.pop(source, None)
+                self.counts["withdrawn"] += 1
+                log.warning("fleet: %s's map withdrawn on request; not read again until restart", source)
+                continue
             if key.endswith("/status"):
                 frame = _frame_of(payload)
                 if frame is None:

@@ -1,6 +1,7 @@
 """Other vehicles' maps reach this vehicle's law over a real Zenoh session on loopback
 (drivers/fleet_listener.py into companion/method/terrain/sharing.py): placed from the two EKF
-origins, fetched whole when a vehicle appears, counted once, never one's own, never an ignored one."""
+origins, fetched whole when a vehicle appears, counted once, never one's own, never an ignored one,
+and withdrawn on the operator's word."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+import zenoh
 
 from companion.config import ZenohConfig
 from companion.method.geodesy import LocalFrame
@@ -15,7 +17,7 @@ from companion.method.terrain.codec import encode_tile
 from companion.method.terrain.sharing import SharedEvidence
 from companion.method.terrain.tile import Tile
 from drivers.fleet_listener import FleetListener
-from drivers.zenoh_bus import ZenohBus
+from drivers.zenoh_bus import ZenohBus, zenoh_config
 from tests.processes import free_port
 
 T = 32
@@ -85,5 +87,19 @@ def test_another_vehicle_s_wall_is_placed_from_the_origins_and_counted_once():
             assert drain_until(listener, shared, own, lambda: listener.counts["tiles_applied"] >= 2)
             again = shared.lookup("v2", np.array([60]), np.array([3]))
             assert (float(again[0][0]), float(again[1][0]), int(again[2][0])) == (float(h[0]), float(v[0]), int(n[0]))
+            # The operator withdraws v2: its evidence leaves, and what it sends next is not read.
+            operator = zenoh.open(zenoh_config(cfg(connect=(ep,))))
+            try:
+                deadline = time.monotonic() + 10
+                while shared.sources and time.monotonic() < deadline:
+                    operator.put("companion/v1/sharing/withdraw", b"v2")
+                    listener.drain(shared, own)
+                    time.sleep(0.1)
+            finally:
+                operator.close()
+            assert shared.sources == [] and listener.counts["withdrawn"] >= 1
+            ignored = listener.counts["ignored"]
+            v2.publish_tile(0, 0, encode_tile(wall(0, 0, 9.0), deflate=True))
+            assert drain_until(listener, shared, own, lambda: listener.counts["ignored"] > ignored) and shared.sources == []
         finally:
             host.close()
