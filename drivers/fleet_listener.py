@@ -108,10 +108,9 @@ class FleetListener:
             if source is not None:
                 self._wanted.add(source)
 
-    def _ask(self) -> None:
+    def _ask(self, sources: set[str]) -> None:
         """The whole map of each source that (re)appeared: a late joiner starts with what it has."""
-        while self._wanted:
-            source = self._wanted.pop()
+        for source in sorted(sources):
             for reply in self._bus.get(f"{KEY_ROOT}/{source}/terrain/tile/**", 5.0):
                 if reply.ok is not None:
                     self._on_sample(reply.ok)
@@ -126,7 +125,8 @@ class FleetListener:
         from companion.method.terrain.codec import decode_tile
 
         if self._bus is not None and self._wanted:
-            threading.Thread(target=self._ask, name="companion-fleet-query", daemon=True).start()
+            wanted, self._wanted = self._wanted, set()  # each appearance asked once
+            threading.Thread(target=self._ask, args=(wanted,), name="companion-fleet-query", daemon=True).start()
         applied = 0
         while True:
             try:
