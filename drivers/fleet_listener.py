@@ -100,7 +100,10 @@ class FleetListener:
         except UnicodeDecodeError:
             source = ""
         if source:
-            self._q.put((source, "withdraw", b""))
+            try:
+                self._q.put_nowait((source, "withdraw", b""))
+            except queue.Full:
+                self.counts["dropped"] += 1
 
     def _on_alive(self, sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:
