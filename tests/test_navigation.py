@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from companion.config import NavConfig
 from companion.method.geometry import euler_to_matrix, euler_to_quat, matrix_to_quat, quat_to_matrix
-from companion.method.navigation.assembler import ARDUPILOT_EARTH_RADIUS_M, GeoOrigin, NavAssembler, geodetic_to_ned
+from companion.method.navigation.assembler import ARDUPILOT_EARTH_RADIUS_M, GeoOrigin, NavAssembler, TRUTH_PAIR_WINDOW_S, geodetic_to_ned
 from companion.method.navigation.covariance import (
     apply_floors,
     covariance_block,
@@ -419,6 +419,27 @@ def test_truth_pose_from_sim_state_and_origin_or_home():
     b.update(sim(lat0, lon0, 400.0), 1.5)
     np.testing.assert_allclose(b.truth_pose().position_ned_m, [5.0, -3.0, -1.0], atol=0.02)
     assert b.truth_pose().origin_source == "HOME_POSITION"
+
+
+def test_truth_takes_the_time_of_the_attitude_it_followed():
+    """SIM_STATE has no timestamp: sent right after the attitude of the same simulator step, it takes
+    that attitude's sample time (on the autopilot's clock, like the navigation state a frame is
+    paired with), not its arrival, which a loaded process delays; without an attitude just before
+    it, the arrival time."""
+    a = NavAssembler(CFG, time_map=lambda t_boot: t_boot + 100.0)
+    a.update(msg("GPS_GLOBAL_ORIGIN", latitude=470000000, longitude=80000000, altitude=400_000), 0.0)
+    sim = msg("SIM_STATE", q1=1.0, q2=0.0, q3=0.0, q4=0.0, lat=47.0, lon=8.0, alt=410.0, vn=0.0, ve=0.0, vd=0.0,
+              lat_int=470000000, lon_int=80000000)
+    a.update(aq(5_000), 105.040)  # sampled at 105.000, read 40 ms late (a busy process)
+    a.update(sim, 105.040)        # in the same read
+    truth = a.truth_pose()
+    assert truth.t_s == pytest.approx(105.0) and truth.time_source == "ATTITUDE_QUATERNION"
+    a.update(sim, 105.040 + 0.5 * TRUTH_PAIR_WINDOW_S)  # read a moment later: the same step
+    assert a.truth_pose().t_s == pytest.approx(105.0)
+    a.update(sim, 105.040 + 2.0 * TRUTH_PAIR_WINDOW_S)  # no attitude just before: its arrival
+    assert a.truth_pose().t_s == pytest.approx(105.040 + 2.0 * TRUTH_PAIR_WINDOW_S)
+    assert a.truth_pose().time_source == "arrival"
+    assert (a.truth_paired, a.truth_unpaired) == (2, 1)
 
 
 def test_pymavlink_messages_are_accepted_as_well_as_dicts():

@@ -102,7 +102,7 @@ class LinkStatus:
                     "type_mask": sp.type_mask,
                 },
             },
-            "truth": None if not self.cfg.link.request_sim_state else _truth_status(self.truth_pose(), now),
+            "truth": None if not self.cfg.link.request_sim_state else _truth_status(self.truth_pose(), now, self.assembler),
             "signing": None if self.signing is None else {
                 "required": self.signing.required,
                 "accepted_signed": self.signing.accepted_signed,
@@ -112,11 +112,16 @@ class LinkStatus:
         }
 
 
-def _truth_status(truth: TruthPose | None, now: float) -> dict[str, Any] | None:
+def _truth_status(truth: TruthPose | None, now: float, assembler) -> dict[str, Any] | None:
+    """The latest truth, and how SIM_STATE was timed: ``paired`` with the attitude it followed, or
+    stamped on ``arrival`` (``TruthPose``)."""
     if truth is None:
         return None
     return {
+        "paired": assembler.truth_paired,
+        "arrival": assembler.truth_unpaired,
         "age_s": round(now - truth.t_s, 3),
         "position_ned_m": [round(x, 3) for x in truth.position_ned_m.tolist()],
         "origin_source": truth.origin_source,
+        "time_source": truth.time_source,
     }

@@ -60,6 +60,11 @@ MAV_FRAME_LOCAL_FRD = 20
 LOCAL_POSE_FRAMES = frozenset({MAV_FRAME_LOCAL_NED, MAV_FRAME_VISION_NED, MAV_FRAME_ESTIM_NED, MAV_FRAME_LOCAL_FRD})
 LOCAL_VELOCITY_FRAMES = LOCAL_POSE_FRAMES | {MAV_FRAME_BODY_NED}
 
+# SIM_STATE arriving this soon (companion seconds) after an attitude message was sent right after it
+# in the same simulator step (both simulators here, and ArduPilot SITL at equal stream rates): it
+# takes that attitude's time. Messages of one step arrive back to back, in the same read as a rule.
+TRUTH_PAIR_WINDOW_S = 0.01
+
 # EKF_STATUS_FLAGS (ArduPilot) and ESTIMATOR_STATUS_FLAGS (common) share the low bits.
 EKF_ATTITUDE = 1
 EKF_VELOCITY_HORIZ = 2
@@ -134,7 +139,10 @@ class GeoOrigin:
 class TruthPose:
     """Simulator truth (SIM_STATE) in the autopilot's local NED frame.
 
-    t_s: companion time of arrival (SIM_STATE carries no timestamp).
+    t_s: companion time of the truth. SIM_STATE carries no timestamp of its own; a simulator sends
+    it right after the attitude of the same step, so when the attitude arrived just before it
+    (within ``TRUTH_PAIR_WINDOW_S``) ``t_s`` is that attitude's sample time (``time_source`` names
+    the message), else the arrival time (``time_source`` "arrival").
     position_ned_m, velocity_ned_mps: (3,); quaternion_wxyz: (4,) body->NED.
     """
 
@@ -143,6 +151,7 @@ class TruthPose:
     velocity_ned_mps: np.ndarray
     quaternion_wxyz: np.ndarray
     origin_source: str
+    time_source: str = "arrival"
 
 
 @dataclass(slots=True)
@@ -182,6 +191,8 @@ class _Attitude:
     t: float
     q: np.ndarray
     omega_b: np.ndarray  # body rates (rad/s), FRD
+    t_rx: float = -math.inf  # arrival (companion clock)
+    kind: str = ""
 
 
 # --------------------------------------------------------------------------------------------
@@ -256,6 +267,8 @@ class NavAssembler:
         self.origin: GeoOrigin | None = None
         self._home: tuple[float, float, float, np.ndarray] | None = None
         self._truth: TruthPose | None = None
+        self.truth_paired = 0    # SIM_STATE stamped with the attitude it followed
+        self.truth_unpaired = 0  # ... with its arrival time (no attitude just before it)
         self.time_basis = "none"
         self.time_basis_changes = 0
         self.last_covariance_blocks: dict[str, str] = {}
@@ -396,7 +409,7 @@ class NavAssembler:
         t = self._companion_time(kind, _get(msg, "time_boot_ms", 0) * 1e-3, t_rx)
         if t is None:
             return None
-        self._att = _Attitude(t, q, self._body_rates(kind, msg))
+        self._att = _Attitude(t, q, self._body_rates(kind, msg), t_rx, kind)
         return self._assemble(t, t_rx)
 
     def _on_odometry(self, msg: Any, t_rx: float) -> NavState | None:
@@ -456,7 +469,7 @@ class NavAssembler:
         self._set_evidence(kind, ev)
 
         self._pos = _Position(t, p, v)
-        self._att = _Attitude(t, q, self._body_rates(kind, msg))
+        self._att = _Attitude(t, q, self._body_rates(kind, msg), t_rx, kind)
         return self._assemble(t, t_rx)
 
     # --- covariance evidence ---------------------------------------------------------------------
@@ -588,7 +601,18 @@ class NavAssembler:
             self._truth = None
             return None
         p = geodetic_to_ned(lat, lon, alt, self.origin)
-        self._truth = TruthPose(t_rx, p, v, q, self.origin.source)
+        att = self._att
+        if att is not None and 0.0 <= t_rx - att.t_rx <= TRUTH_PAIR_WINDOW_S:
+            # Sent right after the attitude of the same step: that step's time, on the autopilot's
+            # clock like every navigation state. The arrival time is late by the link's and this
+            # process's delays, which on a loaded machine reach tens of milliseconds: at the
+            # rotation rates of a pitching multirotor a frame rendered at the truth would be paired
+            # with navigation a degree away from the attitude it was rendered at.
+            self._truth = TruthPose(att.t, p, v, q, self.origin.source, att.kind)
+            self.truth_paired += 1
+        else:
+            self._truth = TruthPose(t_rx, p, v, q, self.origin.source)
+            self.truth_unpaired += 1
         return None
 
     def truth_pose(self) -> TruthPose | None:
