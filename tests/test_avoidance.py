@@ -13,6 +13,8 @@ from hypothesis import strategies as st
 from companion.method.messages import TerrainPoints
 from companion.method.avoidance import (
     PullUpLaw,
+    law_heights,
+    local_surface,
     height_restriction,
     minimum_climb_rate,
     nominal_climb_rate,
@@ -335,7 +337,8 @@ def test_the_law_keeps_its_clearance_above_the_map_uncertainty():
     """h + k sigma: a cell mapped at 8 m +- 0.5 m is taken as 9 m with k = 2 (the clearance is meant
     above the true terrain, which the map only estimates)."""
     grid = with_variance(mapped([[40.5, 0.5, 8.0]]), 0.25)
-    cfg2 = AvoidanceConfig(**{**{f: getattr(CFG, f) for f in CFG.__dataclass_fields__}, "height_margin_sigma": 2.0})
+    cfg2 = AvoidanceConfig(**{**{f: getattr(CFG, f) for f in CFG.__dataclass_fields__}, "height_margin_sigma": 2.0,
+                              "local_radius_m": 0.0})
     c0 = PullUpLaw(CFG).command([13, 0.5, -10.0], [5, 0, 0], grid)
     c2 = PullUpLaw(cfg2).command([13, 0.5, -10.0], [5, 0, 0], grid)
     assert c0.limiting_height_m == pytest.approx(8.0) and c2.limiting_height_m == pytest.approx(9.0)
@@ -346,6 +349,60 @@ def test_the_law_keeps_its_clearance_above_the_map_uncertainty():
     assert PullUpLaw(cfg2).command([0, 0.5, -10.5], [5, 0, 0], flat).climb_rate_mps > 0.0
 
 
+def test_a_cell_is_fused_with_the_neighbours_it_agrees_with():
+    """local_surface against its definition: where a cell agrees with the cells of its disc, the
+    information-weighted mean and variance of the disc; where it stands out by more than
+    outlier_sigma (neighbours' mean and both variances), its own height and variance."""
+    rng = np.random.default_rng(3)
+    n, e = np.meshgrid(np.arange(20) + 0.5, np.arange(9) + 0.5, indexing="ij")
+    n, e = n.ravel(), e.ravel()
+    v = rng.uniform(0.2, 0.8, len(n))
+    h = rng.normal(0.0, 0.05, len(n))
+    mast = int(np.flatnonzero((n == 10.5) & (e == 4.5))[0])
+    h[mast] = 6.0
+    h[3] = np.nan  # unmapped
+    fused_h, fused_v, fused = local_surface(n, e, h, v, 1.0, 2.0, 2.0)
+    assert not fused[mast] and fused_h[mast] == h[mast] and fused_v[mast] == v[mast]
+    assert not fused[3] and np.isnan(fused_h[3])
+    for i in np.flatnonzero(fused):
+        disc = ((n - n[i]) ** 2 + (e - e[i]) ** 2 <= 4.0 + 1e-9) & np.isfinite(h)
+        others = disc.copy()
+        others[i] = False
+        m_others = np.sum(h[others] / v[others]) / np.sum(1 / v[others])
+        assert (h[i] - m_others) ** 2 <= 4.0 * (v[i] + 1 / np.sum(1 / v[others]))
+        assert fused_h[i] == pytest.approx(np.sum(h[disc] / v[disc]) / np.sum(1 / v[disc]))
+        assert fused_v[i] == pytest.approx(1 / np.sum(1 / v[disc]))
+    # A flat cell beside the mast that agrees with its disc takes a mean the mast raises: higher.
+    near = ((n - 10.5) ** 2 + (e - 4.5) ** 2 <= 4.0) & (np.arange(len(n)) != mast) & fused
+    assert near.any() and np.all(fused_h[near] > h[near])
+    assert fused.sum() > 0.6 * len(n)
+    assert local_surface(n, e, h, v, 1.0, 0.0, 2.0)[2].sum() == 0  # radius 0: each cell alone
+
+
+def test_flat_ground_known_to_half_a_metre_costs_less_margin_fused_and_a_small_post_keeps_its_own():
+    """Over flat ground whose cells each hold +-0.5 m, the law with k = 2 keeps its clearance above
+    h + 2 sqrt(V) of the fused cells (V = 0.25 / n for the n cells of a disc of 2 m: 13 inside the
+    corridor, fewer at its edges), not h + 1 m; a 2.5 m post in that ground stands out (2.5 m >
+    2 sqrt(0.25 + 0.25 / 12)) and still counts at its own 2.5 + 1 m."""
+    fields = {f: getattr(CFG, f) for f in CFG.__dataclass_fields__}
+    alone = PullUpLaw(AvoidanceConfig(**{**fields, "height_margin_sigma": 2.0, "local_radius_m": 0.0}))
+    fused = PullUpLaw(AvoidanceConfig(**{**fields, "height_margin_sigma": 2.0, "local_radius_m": 2.0}))
+    flat = with_variance(mapped([]), 0.25)
+    assert alone.command([0, 0.5, -10.6], [5, 0, 0], flat).engaged  # it wants 11 m
+    assert not fused.command([0, 0.5, -10.6], [5, 0, 0], flat).engaged  # 2 * 0.5 / sqrt(n) < 0.6 for n >= 3
+    assert fused.command([0, 0.5, -10.0], [5, 0, 0], flat).engaged  # but not nothing
+    post = with_variance(mapped([[40.5, 0.5, 2.5]]), 0.25)
+    corridor = post.corridor(np.array([8.0, 0.5]), np.array([1.0, 0.0]), 85.0, 3.7)
+    at_post = (corridor.north_m == 40.5) & (corridor.east_m == 0.5)
+    for radius in (0.0, 2.0):
+        heights = law_heights(corridor.along_m, corridor, 2.0, 5.0, 1.0, False, radius, 2.0)
+        assert heights[at_post] == pytest.approx(3.5) and heights.max() == pytest.approx(3.5)
+    fused_flat = law_heights(corridor.along_m, corridor, 2.0, 5.0, 1.0, False, 2.0, 2.0)
+    far = np.hypot(corridor.north_m - 40.5, corridor.east_m - 0.5) > 2.5  # discs without the post
+    assert fused_flat[far].max() <= 2 * 0.5 / math.sqrt(3) + 1e-6
+    assert fused_flat[far].min() == pytest.approx(2 * 0.5 / math.sqrt(13), rel=1e-5)
+
+
 @settings(max_examples=30, deadline=None)
 @given(k=st.floats(0.0, 4.0), sigma=st.floats(0.01, 2.0), alt=st.floats(8.0, 30.0), north=st.floats(-5.0, 35.0))
 def test_margin_is_the_same_law_on_a_map_raised_by_k_sigma(k, sigma, alt, north):
@@ -353,7 +410,7 @@ def test_margin_is_the_same_law_on_a_map_raised_by_k_sigma(k, sigma, alt, north)
     without margin commands on the same map raised by k sigma."""
     cells = [[40.5, 0.5, 8.0], [41.5, 0.5, 6.0], [60.5, -1.5, 12.0]]
     fields = {f: getattr(CFG, f) for f in CFG.__dataclass_fields__}
-    with_k = PullUpLaw(AvoidanceConfig(**{**fields, "height_margin_sigma": k}))
+    with_k = PullUpLaw(AvoidanceConfig(**{**fields, "height_margin_sigma": k, "local_radius_m": 0.0}))
     extent = ((-15, 75), (-8, 8))
     grid = with_variance(mapped(cells, extent=extent), sigma * sigma)
     raised = with_variance(mapped([[n, e, h + k * sigma] for n, e, h in cells], ground=k * sigma, extent=extent),

@@ -208,8 +208,69 @@ def fill_unknown(along_m: np.ndarray, height_m: np.ndarray, fill_m: float, cell_
     return h
 
 
+def local_surface(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray, variance: np.ndarray,
+                  cell_m: float, radius_m: float, outlier_sigma: float, min_cells: int = 3
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each mapped cell's height fused with the mapped cells within ``radius_m`` around it, where it
+    agrees with them (docs/avoidance.md, "The surface a cell belongs to").
+
+    A cell with one point knows its height to its point's sigma (0.8 m at convergence); its
+    neighbours on the same surface know theirs as well, and the law, which takes the highest of a
+    thousand cells ahead, would otherwise fly over the noisiest of them. The information-weighted
+    mean of the ``n`` cells of the disc, ``m = sum(h_j / v_j) / sum(1 / v_j)``, has the variance
+    ``V = 1 / sum(1 / v_j)``. It stands for the cell where the cell agrees with its neighbours:
+    with ``m_-``, ``V_-`` the same over the neighbours alone, ``|h - m_-| <= outlier_sigma
+    sqrt(v + V_-)``. A cell that stands out (a mast, a wall's top, the first point of an obstacle,
+    or the ground beside them) keeps its own height and variance, as without fusion. At least
+    ``min_cells`` mapped cells (the cell included) must be in the disc.
+
+    north_m, east_m: (K,) cell centres on the grid of ``cell_m``; height_m (K,) NaN unmapped;
+    variance (K,). Returns (height, variance, fused) (K,): the fused cells' ``m`` and ``V``, the
+    others' own values, and which were fused."""
+    h = np.asarray(height_m, dtype=np.float64)
+    v = np.asarray(variance, dtype=np.float64)
+    k = len(h)
+    fused = np.zeros(k, dtype=bool)
+    known = np.isfinite(h) & np.isfinite(v) & (v > 0)
+    r = int(math.floor(radius_m / cell_m + 1e-9)) if radius_m > 0 else 0
+    if r < 1 or np.count_nonzero(known) < min_cells:
+        return h, v, fused
+    i = np.rint((north_m - north_m.min()) / cell_m).astype(np.int64) + r
+    j = np.rint((east_m - east_m.min()) / cell_m).astype(np.int64) + r
+    rows, cols = int(i.max()) + r + 1, int(j.max()) + r + 1
+    w = np.zeros((rows, cols))
+    wh = np.zeros((rows, cols))
+    n = np.zeros((rows, cols))
+    w[i[known], j[known]] = 1.0 / v[known]
+    wh[i[known], j[known]] = h[known] / v[known]
+    n[i[known], j[known]] = 1.0
+    s0, s1, sn = np.zeros_like(w), np.zeros_like(w), np.zeros_like(w)
+    inner = (slice(r, rows - r), slice(r, cols - r))
+    for di in range(-r, r + 1):
+        for dj in range(-r, r + 1):
+            if di * di + dj * dj > r * r:
+                continue
+            src = (slice(r + di, rows - r + di), slice(r + dj, cols - r + dj))
+            s0[inner] += w[src]
+            s1[inner] += wh[src]
+            sn[inner] += n[src]
+    ik, jk = i[known], j[known]
+    hk, vk = h[known], v[known]
+    a0, a1, an = s0[ik, jk], s1[ik, jk], sn[ik, jk]
+    b0 = a0 - 1.0 / vk  # the neighbours alone
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_others = (a1 - hk / vk) / b0
+        agrees = (an >= min_cells) & (b0 > 0) & ((hk - mean_others) ** 2 <= outlier_sigma**2 * (vk + 1.0 / b0))
+    out_h, out_v = h.copy(), v.copy()
+    idx = np.flatnonzero(known)[agrees]
+    out_h[idx] = a1[agrees] / a0[agrees]
+    out_v[idx] = 1.0 / a0[agrees]
+    fused[idx] = True
+    return out_h, out_v, fused
+
+
 def law_heights(along_m: np.ndarray, corridor: Corridor, k_sigma: float, fill_m: float, cell_m: float,
-                hover: bool) -> np.ndarray:
+                hover: bool, local_radius_m: float = 0.0, local_outlier_sigma: float = 2.0) -> np.ndarray:
     """The height the law keeps its clearance above, per corridor cell (K,), sorted along track
     (docs/avoidance.md, "What a cell may hold"):
 
@@ -228,6 +289,9 @@ def law_heights(along_m: np.ndarray, corridor: Corridor, k_sigma: float, fill_m:
     ceiling = corridor.ceiling_m if corridor.ceiling_m is not None else np.full(n, np.inf)
     floor = corridor.floor_m if corridor.floor_m is not None else np.full(n, -np.inf)
     known = (corridor.count > 0) & np.isfinite(h)
+    if local_radius_m > 0:
+        h, var, _ = local_surface(corridor.north_m, corridor.east_m, np.where(known, h, np.nan), var, cell_m,
+                                  local_radius_m, local_outlier_sigma)
     with np.errstate(invalid="ignore"):
         taken = np.where(known, np.fmax(h, np.fmin(margin_height(h, var, k_sigma), ceiling)), np.nan)
         taken = fill_unknown(along_m, taken, fill_m, cell_m, hover)
@@ -374,7 +438,8 @@ class PullUpLaw:
             corr = grid.corridor(p[:2] - fill * direction, direction, cfg.lookahead_m + fill, radius)
             along = corr.along_m - fill
             zone = (along >= 0.0) | (along * along + corr.cross_m * corr.cross_m <= radius * radius)
-        heights = law_heights(along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover)[zone]
+        heights = law_heights(along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover,
+                              cfg.local_radius_m, cfg.local_outlier_sigma)[zone]
         along, cross = along[zone], corr.cross_m[zone]
         north, east = corr.north_m[zone], corr.east_m[zone]
         considered = np.isfinite(heights)
