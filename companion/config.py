@@ -238,6 +238,8 @@ class ZenohConfig:
     avoidance_rate_hz: float = _f(5.0, "Hz", 0.1, 200.0, "the avoidance state is published at most this often, and at once when it engages or releases (the law runs at control.rate_hz)")
     tile_interval_s: float = _f(1.0, "s", 0.05, 60.0, "a changed tile is published at most this often: the changes in between go out together (docs/zenoh.md, \"Bandwidth\")")
     tile_deflate: bool = _f(True, doc="publish tiles deflated (format version 2, about 6 times smaller); false = version 1, for readers that only know it")
+    tile_deltas: bool = _f(True, doc="publish a changed tile as the cells that changed since its last publication when that is smaller (flags bit1-2 of tile format version 2; docs/terrain.md, \"Tile deltas\"); a receiver that missed one asks for the whole tile; false = whole tiles only")
+    tile_keyframe_every: int = _f(10, "", 1, 100000, "with tile_deltas, every this many publications of a tile it goes out whole, so a receiver that missed a delta and cannot ask has it again")
     share_from: tuple[str, ...] = _f((), doc="other vehicles whose maps the avoidance law also reads (their <vehicle> names, or \"*\" for every vehicle heard); empty = none (docs/terrain.md, \"Evidence from other vehicles\")")
     share_ignore: tuple[str, ...] = _f((), doc="vehicles never read, even under \"*\"")
     share_weight: float = _f(1.0, "-", 0.01, 1.0, "trust in other vehicles' maps: their variances are divided by it (1 = as their own)")

@@ -45,6 +45,8 @@ class FleetListener:
         self._pending: dict[str, dict[tuple[int, int], Any]] = {}  # tiles of sources not placed yet
         self._placed_with: dict[str, Any] = {}            # source -> the own frame it was placed in
         self._wanted: set[str] = set()                    # sources whose map to ask for
+        self._received: dict[tuple[str, int, int], Any] = {}  # (source, tx, ty) -> its tile as last received
+        self._missing: set[tuple[str, int, int]] = set()   # tiles a delta could not be applied to: asked whole
         self.counts = Counter()
 
     # ---- Zenoh side (its threads) ------------------------------------------------------------
@@ -111,12 +113,16 @@ class FleetListener:
             if source is not None:
                 self._wanted.add(source)
 
-    def _ask(self, sources: set[str]) -> None:
-        """The whole map of each source that (re)appeared: a late joiner starts with what it has."""
-        for source in sorted(sources):
-            for reply in self._bus.get(f"{KEY_ROOT}/{source}/terrain/tile/**", 5.0):
+    def _ask(self, sources: set[str], tiles: set[tuple[str, int, int]] = frozenset()) -> None:
+        """The whole map of each source that (re)appeared: a late joiner starts with what it has;
+        and each tile whose delta found no base here, whole."""
+        selectors = [f"{KEY_ROOT}/{source}/terrain/tile/**" for source in sorted(sources)]
+        selectors += [f"{KEY_ROOT}/{source}/terrain/tile/{tx}/{ty}" for source, tx, ty in sorted(tiles)]
+        for selector in selectors:
+            for reply in self._bus.get(selector, 5.0):
                 if reply.ok is not None:
                     self._on_sample(reply.ok)
+            self.counts["queries_answered"] += 1
 
     # ---- the service's side (its thread) -----------------------------------------------------
 
@@ -125,11 +131,12 @@ class FleetListener:
         origin and ``own_frame`` (a ``LocalFrame``, None while this vehicle has no origin: tiles
         wait). Returns the tiles applied."""
         from companion.method.geodesy import place_cells
-        from companion.method.terrain.codec import decode_tile
+        from companion.method.terrain.codec import MissingBase, apply_update
 
-        if self._bus is not None and self._wanted:
+        if self._bus is not None and (self._wanted or self._missing):
             wanted, self._wanted = self._wanted, set()  # each appearance asked once
-            threading.Thread(target=self._ask, args=(wanted,), name="companion-fleet-query", daemon=True).start()
+            missing, self._missing = self._missing, set()
+            threading.Thread(target=self._ask, args=(wanted, missing), name="companion-fleet-query", daemon=True).start()
         applied = 0
         while True:
             try:
@@ -139,6 +146,7 @@ class FleetListener:
             if key == "withdraw":
                 self.ignore.add(source)
                 shared.withdraw(source)
+                self._received = {k: t for k, t in self._received.items() if k[0] != source}
                 self._frames.pop(source, None)
                 self._pending.pop(source, None)
                 self._placed_with.pop(source, None)
@@ -152,12 +160,25 @@ class FleetListener:
                 else:
                     self._frames[source] = frame
                 continue
+            index = _tile_index(key)
+            if index is None:
+                self.counts["bad_tiles"] += 1
+                continue
             try:
-                tile = decode_tile(payload)
+                tile = apply_update(self._received.get((source, *index)), payload)
+            except MissingBase as exc:  # a delta on a tile not held here: ask for it whole
+                self.counts["missing_base"] += 1
+                self._missing.add((source, *index))
+                log.debug("fleet: %s: %s", key, exc)
+                continue
             except ValueError as exc:
                 self.counts["bad_tiles"] += 1
                 log.debug("fleet: %s: %s", key, exc)
                 continue
+            if index != (tile.tx, tile.ty):
+                self.counts["bad_tiles"] += 1
+                continue
+            self._received[(source, tile.tx, tile.ty)] = tile
             self._pending.setdefault(source, {})[(tile.tx, tile.ty)] = tile
         for source, frame in self._frames.items():
             if own_frame is None:
@@ -177,6 +198,17 @@ class FleetListener:
     def status(self) -> dict[str, Any]:
         return {"sources": sorted(self._frames), "waiting_for_origin": sorted(set(self._pending) - set(self._frames)),
                 **dict(self.counts)}
+
+
+def _tile_index(key: str) -> tuple[int, int] | None:
+    """(tx, ty) of a ``companion/<v>/terrain/tile/<tx>/<ty>`` key, None when it is not one."""
+    parts = key.split("/")
+    if len(parts) != 6 or parts[2:4] != ["terrain", "tile"]:
+        return None
+    try:
+        return int(parts[4]), int(parts[5])
+    except ValueError:
+        return None
 
 
 def _frame_of(payload: bytes):

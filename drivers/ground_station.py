@@ -38,12 +38,12 @@ COLORMAP = cv2.COLORMAP_TURBO
 MAX_MOSAIC_CELLS = 4096  # per side; larger maps are decimated for display
 
 
-def _decode_tile(payload: bytes):
+def _decode_update(payload: bytes):
     # Imported on use: the ground station's wiring (and its tests) must not depend on the
     # terrain package being importable at module load.
-    from companion.method.terrain.codec import decode_tile
+    from companion.method.terrain.codec import decode_update
 
-    return decode_tile(payload)
+    return decode_update(payload)
 
 
 def _has_schema(doc: Any, schema: str) -> bool:
@@ -105,8 +105,10 @@ class GroundMap:
         self.avoidance: dict[str, Any] | None = None
         self.status_rx_monotonic: float | None = None
         self.counts = dict.fromkeys(
-            ("tiles_rx", "status_rx", "avoidance_rx", "bad_tiles", "stale_tiles", "bad_json", "ignored", "query_errors"), 0
+            ("tiles_rx", "deltas_rx", "status_rx", "avoidance_rx", "bad_tiles", "stale_tiles", "missing_base",
+             "bad_json", "ignored", "query_errors"), 0
         )
+        self.missing: set[tuple[int, int]] = set()  # tiles a delta could not be applied to: ask for them whole
         self.last_error = ""
         self.changed_tiles: set[tuple[int, int]] = set()  # since the last take_changes()
         self.changed_status = self.changed_avoidance = False
@@ -140,11 +142,22 @@ class GroundMap:
         if index is None:
             return self.reject("bad_tiles", f"not a tile key: {key!r}")
         try:
-            tile = _decode_tile(payload)
+            tile = _decode_update(payload)
         except ValueError as exc:
             return self.reject("bad_tiles", f"{key}: {exc}")
         if (tile.tx, tile.ty) != index:
             return self.reject("bad_tiles", f"{key}: payload is tile ({tile.tx}, {tile.ty})")
+        from companion.method.terrain.codec import MissingBase, TileDelta, apply_delta
+
+        delta = isinstance(tile, TileDelta)  # the cells that changed since its base revision
+        if delta:
+            try:
+                tile = apply_delta(self.tiles.get(index), tile)
+            except MissingBase as exc:
+                self.counts["missing_base"] += 1
+                self.last_error = str(exc)
+                self.missing.add(index)
+                return False
         if self.tiles:
             ref = next(iter(self.tiles.values()))
             if tile.tile_cells != ref.tile_cells or tile.cell_size_m != ref.cell_size_m:
@@ -160,7 +173,9 @@ class GroundMap:
         self.tiles[index] = tile
         self._stamps[index] = stamp
         self.changed_tiles.add(index)
+        self.missing.discard(index)
         self.counts["tiles_rx"] += 1
+        self.counts["deltas_rx"] += delta
         return True
 
     def apply_json(self, key: str, payload: bytes) -> bool:
@@ -355,6 +370,7 @@ class GroundStation:
         self._declared: list[Any] = []
         self.dropped = 0
         self.syncs = 0
+        self.tile_queries = 0  # tiles asked for whole after a missed delta
 
     def _roots(self) -> list[str]:
         """The key roots subscribed and queried: one per vehicle followed, or the wildcard."""
@@ -451,7 +467,8 @@ class GroundStation:
         return gmap.apply(key, payload, stamp)
 
     def poll(self) -> int:
-        """Apply queued samples (and re-sync when asked); returns the samples handled."""
+        """Apply queued samples (and re-sync when asked); returns the samples handled. A tile whose
+        delta could not be applied (its base was missed) is then asked for whole."""
         if self._resync.is_set():
             self.sync()
         n = 0
@@ -459,9 +476,27 @@ class GroundStation:
             try:
                 key, payload, stamp = self._q.get_nowait()
             except queue.Empty:
-                return n
+                break
             self._apply(key, payload, stamp)
             n += 1
+        for gmap in list(self.maps.values()):
+            if gmap.missing and self._session is not None:
+                self.ask_tiles(gmap)
+        return n
+
+    def ask_tiles(self, gmap: GroundMap) -> int:
+        """Ask the vehicle for each of ``gmap.missing`` whole; returns the tiles applied."""
+        wanted, gmap.missing = sorted(gmap.missing), set()
+        applied = 0
+        for tx, ty in wanted:
+            for reply in self._session.get(gmap.keys.tile(tx, ty), timeout=self.query_timeout_s):
+                sample = reply.ok
+                if sample is None:
+                    gmap.reject("query_errors", f"tile query error: {reply.err.payload.to_bytes()[:200]!r}")
+                    continue
+                applied += gmap.apply(str(sample.key_expr), sample.payload.to_bytes(), self._stamp(sample))
+        self.tile_queries += len(wanted)
+        return applied
 
     def run(self, *, duration_s: float = 0.0, png: str | None = None, png_every_s: float = 2.0,
             summary_every_s: float = 1.0, out: TextIO | None = None, tick_s: float = 0.05,

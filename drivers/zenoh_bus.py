@@ -250,6 +250,7 @@ class BusStats:
     bytes_tiles: int = 0        # of bytes_published: tiles, status, avoidance (what the radio carries)
     bytes_status: int = 0
     bytes_avoidance: int = 0
+    published_deltas: int = 0   # of published_tiles: sent as the changed cells only
 
     def as_dict(self) -> dict[str, Any]:
         return {name: getattr(self, name) for name in self.__slots__}
@@ -443,10 +444,14 @@ class ZenohBus:
         with self._lock:
             self._n[name] += n
 
-    def publish_tile(self, tx: int, ty: int, payload: bytes) -> None:
-        """Publish one changed tile (encoded by the terrain codec) and remember it for queries."""
+    def publish_tile(self, tx: int, ty: int, payload: bytes, live: bytes | None = None) -> None:
+        """Publish one changed tile (encoded by the terrain codec) and remember it for queries.
+        ``live``: what goes on the wire instead (a delta on the revision before), while queries
+        are still answered with ``payload``, the whole tile."""
         if not isinstance(payload, (bytes, bytearray, memoryview)):
             raise TypeError(f"tile ({tx}, {ty}): payload must be bytes, got {type(payload).__name__}")
+        if live is not None and not isinstance(live, (bytes, bytearray, memoryview)):
+            raise TypeError(f"tile ({tx}, {ty}): live payload must be bytes, got {type(live).__name__}")
         if isinstance(tx, bool) or isinstance(ty, bool) or int(tx) != tx or int(ty) != ty:
             raise ValueError(f"tile index must be integers, got ({tx!r}, {ty!r})")
         payload = bytes(payload)
@@ -465,8 +470,9 @@ class ZenohBus:
             ts = None
         with self._lock:
             self._tiles[(tx, ty)] = (payload, ts)
+        sent = payload if live is None else bytes(live)
         try:
-            session.put(self.keys.tile(tx, ty), payload, encoding=TILE_ENCODING, timestamp=ts,
+            session.put(self.keys.tile(tx, ty), sent, encoding=TILE_ENCODING, timestamp=ts,
                         priority=zenoh.Priority.DATA_LOW, congestion_control=zenoh.CongestionControl.DROP)
         except zenoh.ZError as exc:
             log.warning("zenoh: tile (%d, %d) not published: %s", tx, ty, exc)
@@ -474,8 +480,9 @@ class ZenohBus:
             return
         with self._lock:
             self._n["published_tiles"] += 1
-            self._n["bytes_published"] += len(payload)
-            self._n["bytes_tiles"] += len(payload)
+            self._n["published_deltas"] += live is not None
+            self._n["bytes_published"] += len(sent)
+            self._n["bytes_tiles"] += len(sent)
 
     def publish_tiles(self, items: Iterable[tuple[int, int, bytes]]) -> int:
         """Publish several tiles; returns how many."""

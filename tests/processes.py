@@ -63,7 +63,9 @@ def stop(proc: subprocess.Popen, timeout_s: float = 5.0, sig=signal.SIGTERM) -> 
 
 
 class ZenohListener:
-    """A plain Zenoh session that collects the JSON and tile samples a vehicle publishes."""
+    """A plain Zenoh session that collects the JSON and tile samples a vehicle publishes. ``tiles``
+    holds each tile as the samples make it (a whole tile, or a delta applied to the one held);
+    ``missing_base`` counts deltas that found no base (a listener that joined late)."""
 
     def __init__(self, endpoint: str, vehicle: str = "vehicle1"):
         import zenoh
@@ -75,13 +77,23 @@ class ZenohListener:
         self.session = zenoh.open(conf)
         self.status: queue.Queue = queue.Queue()
         self.avoidance: queue.Queue = queue.Queue()
-        self.tiles: dict[str, bytes] = {}
+        self.tiles: dict[str, object] = {}  # key -> companion.method.terrain.tile.Tile
+        self.missing_base = 0
         root = f"companion/{vehicle}"
         self._subs = [
             self.session.declare_subscriber(f"{root}/status", lambda s: self.status.put(json.loads(s.payload.to_bytes()))),
             self.session.declare_subscriber(f"{root}/avoidance", lambda s: self.avoidance.put(json.loads(s.payload.to_bytes()))),
-            self.session.declare_subscriber(f"{root}/terrain/tile/*/*", lambda s: self.tiles.__setitem__(str(s.key_expr), s.payload.to_bytes())),
+            self.session.declare_subscriber(f"{root}/terrain/tile/*/*", self._on_tile),
         ]
+
+    def _on_tile(self, sample) -> None:
+        from companion.method.terrain.codec import MissingBase, apply_update
+
+        key = str(sample.key_expr)
+        try:
+            self.tiles[key] = apply_update(self.tiles.get(key), sample.payload.to_bytes())
+        except MissingBase:
+            self.missing_base += 1
 
     def wait_status(self, predicate, timeout_s: float) -> dict:
         """The first status message satisfying ``predicate`` (bounded wait)."""

@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 from companion.method.messages import TerrainPoints
-from companion.method.terrain.codec import decode_tile
 from companion.method.terrain.grid import TerrainGrid
 from drivers.sim.harness import MavClient, SimVehicleProcess
 from drivers.sim.world import World
@@ -208,8 +207,8 @@ def end_flight(listener, daemon, sim, pilot) -> int:
     return rc
 
 
-def known_cells(tiles: dict[str, bytes]) -> int:
-    return sum(int(np.count_nonzero(decode_tile(payload).count > 0)) for payload in list(tiles.values()))
+def known_cells(tiles: dict) -> int:
+    return sum(int(np.count_nonzero(tile.count > 0)) for tile in list(tiles.values()))
 
 
 @pytest.mark.parametrize("camera", ["synthetic", "stream"])
@@ -278,8 +277,8 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
           f"{building.footprint_ne_m[:, 0].min():.0f} m), altitude {early_climb[1]:.1f} m: {early_climb[2]}")
     # The subscriber's tiles against the world's true heights.
     errors, sigmas = [], []
-    for payload in listener.tiles.values():
-        tile = decode_tile(payload)
+    assert listener.missing_base == 0  # subscribed before the first tile: every delta has its base
+    for tile in listener.tiles.values():
         n = tile.height.shape[0]
         ii, jj = np.nonzero(tile.count > 0)
         north_m = (tile.tx * n + ii + 0.5) * tile.cell_size_m
@@ -425,8 +424,8 @@ def test_a_wall_another_vehicle_mapped_makes_the_law_climb_before_the_camera_see
     assert status["sharing"]["sources"] == ["scout"] and status["sharing"]["tiles_applied"] >= 2
     # Its own published map never takes the scout's wall in: no cell of it holds the wall's 30 m.
     assert status["map"]["cells"] > 0
-    copied = [k for k, payload in listener.tiles.items() if np.any(np.abs(decode_tile(payload).height - 30.0) < 0.01)]
-    tall = {k: round(float(np.nanmax(decode_tile(p).height)), 1) for k, p in listener.tiles.items()
-            if np.nanmax(decode_tile(p).height, initial=-1.0) > 5.0}
+    copied = [k for k, tile in listener.tiles.items() if np.any(np.abs(tile.height - 30.0) < 0.01)]
+    tall = {k: round(float(np.nanmax(tile.height)), 1) for k, tile in listener.tiles.items()
+            if np.nanmax(tile.height, initial=-1.0) > 5.0}
     print(f"own tiles with cells above 5 m over the flat ground (the climb's pitch): {tall}")
     assert not copied

@@ -103,3 +103,53 @@ def test_another_vehicle_s_wall_is_placed_from_the_origins_and_counted_once():
             assert drain_until(listener, shared, own, lambda: listener.counts["ignored"] > ignored) and shared.sources == []
         finally:
             host.close()
+
+
+def test_another_vehicle_s_deltas_rebuild_its_tiles_and_a_missed_one_is_asked_for_whole():
+    """v2 publishes its tile whole, then as deltas (TilePublications); this vehicle's law sees the
+    tile each delta makes. A publication v2 made while nobody heard it leaves the next delta without
+    its base: counted, and the tile is asked for whole (v2's bus answers with the last revision)."""
+    from companion.method.terrain.codec import TilePublications
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    own = LocalFrame(ORIGIN["lat_deg"], ORIGIN["lon_deg"], ORIGIN["alt_m"])
+    pubs = TilePublications(deltas=True, keyframe_every=1000, first_revision=40)
+    ground = np.random.default_rng(4).normal(0.0, 0.3, (T, T)).astype(np.float32)  # a whole tile of it is large
+
+    def tile_with(height: float) -> Tile:
+        h = ground.copy()
+        h[10, 3] = height
+        return Tile(0, 0, h, np.full((T, T), 0.3, np.float32), np.full((T, T), 5, np.uint32), cell_size_m=1.0)
+
+    with ZenohBus(cfg(listen=(ep,), vehicle_name="v2")) as v2:
+        def publish(height: float) -> None:
+            whole, live = pubs.encode(tile_with(height))
+            v2.publish_tile(0, 0, whole, live)
+
+        host = ZenohBus(cfg(connect=(ep,), vehicle_name="v1"))
+        host.open()
+        listener = FleetListener(cfg(connect=(ep,), vehicle_name="v1", share_from=("v2",))).open(host)
+        try:
+            shared = SharedEvidence("v1", 1.0, T)
+            publish(5.0)
+            deadline = time.monotonic() + 10
+            while not shared.sources and time.monotonic() < deadline:
+                status(v2, 0.0)
+                listener.drain(shared, own)
+                time.sleep(0.1)
+
+            def height() -> float:
+                return float(shared.lookup("v2", np.array([10]), np.array([3]))[0][0])
+
+            # v2's appearance prompted a query for its whole map: once answered, only live samples come.
+            assert drain_until(listener, shared, own, lambda: height() == pytest.approx(5.0)
+                               and listener.counts["queries_answered"] >= 1)
+            publish(6.0)
+            assert drain_until(listener, shared, own, lambda: height() == pytest.approx(6.0))
+            pubs.encode(tile_with(7.0))  # revision 42: heard by nobody
+            publish(8.0)                  # a delta on 42
+            assert drain_until(listener, shared, own, lambda: height() == pytest.approx(8.0))
+            assert listener.counts["missing_base"] == 1 and listener.counts["bad_tiles"] == 0, dict(listener.counts)
+            assert v2.stats().published_deltas == 2
+        finally:
+            host.close()

@@ -222,3 +222,43 @@ def test_ground_command_rejects_bad_arguments(capsys):
     assert main(["ground", "--vehicle", "a/b", "--duration", "0.1"]) == 1
     assert "vehicle_name" in capsys.readouterr().err
     assert main(["ground", "--png-every", "0", "--duration", "0.1"]) == 2
+
+
+def test_station_applies_deltas_and_asks_whole_for_a_tile_whose_delta_found_no_base():
+    """Deltas over a real session: the station rebuilds each tile from the cells that changed; when
+    a publication is lost, the next delta finds no base, is counted, and the station asks the
+    vehicle for that tile whole (the bus answers with the whole tile of the last revision)."""
+    from companion.method.terrain.codec import TilePublications
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    pubs = TilePublications(deltas=True, keyframe_every=1000, first_revision=1)
+    rng = np.random.default_rng(2)
+
+    def changed(tile: Tile) -> Tile:
+        h = tile.height.copy()
+        h.reshape(-1)[rng.choice(h.size, 6, replace=False)] += 1.0
+        return Tile(tile.tx, tile.ty, h, tile.variance, tile.count, tile.cell_size_m)
+
+    def publish(tile: Tile) -> bool:
+        whole, live = pubs.encode(tile)
+        bus.publish_tile(tile.tx, tile.ty, whole, live)
+        return live is not None
+
+    with ZenohBus(cfg(listen=(ep,))) as bus:
+        tile = make_tile(2, 5, t=32)
+        publish(tile)
+        with GroundStation(cfg(connect=(ep,))) as station:
+            assert poll_until(station, lambda: (2, 5) in station.map.tiles)
+            for _ in range(3):
+                tile = changed(tile)
+                assert publish(tile)
+                assert poll_until(station, lambda: station.map.tiles[(2, 5)].same_as(tile))
+            # (a re-sync when the vehicle's liveliness token shows up may bring one of them whole)
+            assert station.map.counts["deltas_rx"] >= 1 and bus.stats().published_deltas == 3
+            lost = changed(tile)
+            pubs.encode(lost)  # published nowhere: the station never hears of this revision
+            tile = changed(lost)
+            assert publish(tile)
+            assert poll_until(station, lambda: station.map.tiles[(2, 5)].same_as(tile))
+            assert station.map.counts["missing_base"] == 1 and station.tile_queries == 1, (station.map.counts, station.tile_queries, station.map.last_error)
+            assert station.map.counts["bad_tiles"] == 0

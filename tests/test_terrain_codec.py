@@ -154,3 +154,91 @@ def test_a_snapshot_tile_without_the_pending_layer_still_decodes():
     grid = TerrainGrid(tile_cells=tile.tile_cells, cell_size_m=tile.cell_size_m)
     grid.put_tile(back)
     assert np.isnan(grid.tile(tile.key, with_disagreement=True).pending).all()
+
+
+# ---- deltas --------------------------------------------------------------------------------
+
+
+def changed_copy(tile: Tile, rng, n: int) -> Tile:
+    """``tile`` with ``n`` random cells given new heights, variances and counts."""
+    h, v, c = tile.height.copy(), tile.variance.copy(), tile.count.copy()
+    idx = rng.choice(h.size, size=n, replace=False)
+    h.reshape(-1)[idx] = rng.normal(5.0, 2.0, n).astype(np.float32)
+    v.reshape(-1)[idx] = rng.uniform(0.1, 1.0, n).astype(np.float32)
+    c.reshape(-1)[idx] += 1
+    return Tile(tile.tx, tile.ty, h, v, c, tile.cell_size_m)
+
+
+def test_a_delta_rebuilds_the_tile_bit_for_bit_and_needs_its_base():
+    from companion.method.terrain.codec import MissingBase, TileDelta, apply_update, decode_update, encode_delta
+
+    rng = np.random.default_rng(5)
+    base = Tile(3, -2, np.full((32, 32), np.nan, np.float32), np.full((32, 32), np.inf, np.float32),
+                np.zeros((32, 32), np.uint32), 1.0)
+    held = apply_update(None, encode_tile(base, deflate=True, revision=7))
+    assert held.revision == 7 and held.same_as(base)
+    tile = base
+    for revision in range(8, 20):
+        new = changed_copy(tile, rng, int(rng.integers(0, 60)))
+        data = encode_delta(new, tile, revision, revision - 1)
+        update = decode_update(data)
+        assert isinstance(update, TileDelta) and (update.base_revision, update.revision) == (revision - 1, revision)
+        held = apply_update(held, data)
+        assert held.same_as(new) and held.revision == revision
+        assert apply_update(held, data) is held  # already at that revision: nothing to do
+        tile = new
+    # Twelve deltas of up to 60 cells are each far smaller than the tile.
+    assert len(encode_delta(changed_copy(tile, rng, 30), tile, 20, 19)) < len(encode_tile(tile, deflate=True)) / 3
+    # A delta on a revision the receiver does not hold (it missed one), or with nothing held.
+    skipped = encode_delta(changed_copy(tile, rng, 5), tile, 21, 20)
+    with pytest.raises(MissingBase, match="revision 20, this receiver holds revision 19"):
+        apply_update(held, skipped)
+    with pytest.raises(MissingBase, match="holds no tile"):
+        apply_update(None, skipped)
+    with pytest.raises(ValueError, match="is a delta"):
+        decode_tile(skipped)
+
+
+def test_malformed_deltas_are_refused_with_the_reason():
+    from companion.method.terrain.codec import DELTA, FLAG_DELTA, FLAG_REVISION, HEADER, MAGIC, REQUIRED, decode_update
+
+    def framed(body: bytes, mask: int = REQUIRED, flags: int = FLAG_DELTA | FLAG_REVISION) -> bytes:
+        return HEADER.pack(MAGIC, 2, mask, 0, 0, 1.0, 4, flags, zlib.crc32(body)) + body
+
+    cells = np.array([3, 1], "<u4").tobytes() + bytes(24)
+    with pytest.raises(ValueError, match="not ascending"):
+        decode_update(framed(DELTA.pack(2, 1, 2) + cells))
+    with pytest.raises(ValueError, match="of 3 cells in"):
+        decode_update(framed(DELTA.pack(2, 1, 3) + cells))
+    with pytest.raises(ValueError, match="out of range"):
+        decode_update(framed(DELTA.pack(2, 1, 1) + np.array([16], "<u4").tobytes() + bytes(12)))
+    with pytest.raises(ValueError, match="published layers only"):
+        decode_update(framed(DELTA.pack(2, 1, 0), mask=REQUIRED | 8))
+    with pytest.raises(ValueError, match="unknown flags"):
+        decode_update(framed(DELTA.pack(2, 1, 0), flags=FLAG_DELTA))
+
+
+def test_publications_send_deltas_between_whole_tiles():
+    """TilePublications: a tile's first publication is whole, the next ones deltas while smaller,
+    every keyframe_every-th whole again; revisions count up from first_revision, and every whole
+    tile (what queries are answered with) carries its revision."""
+    from companion.method.terrain.codec import TilePublications, apply_update, decode_update
+
+    rng = np.random.default_rng(9)
+    pubs = TilePublications(deltas=True, keyframe_every=4, first_revision=100)
+    tile = Tile(0, 0, np.zeros((32, 32), np.float32), np.ones((32, 32), np.float32), np.ones((32, 32), np.uint32), 1.0)
+    held, kinds = None, []
+    for k in range(9):
+        whole, live = pubs.encode(tile, deflate=True)
+        assert decode_update(whole).revision == 100 + k
+        kinds.append("whole" if live is None else "delta")
+        held = apply_update(held, whole if live is None else live)
+        assert held.same_as(tile)
+        tile = changed_copy(tile, rng, 10)
+    assert kinds == ["whole", "delta", "delta", "delta", "whole", "delta", "delta", "delta", "whole"]  # 100, 104, 108 % 4 == 0
+    # Every cell changed: the delta would not be smaller, the tile goes whole.
+    big = Tile(0, 0, tile.height + 1, tile.variance + 1, tile.count + 1, 1.0)
+    assert pubs.encode(big)[1] is None
+    off = TilePublications(deltas=False)
+    whole, live = off.encode(tile, deflate=False)
+    assert live is None and whole == encode_tile(tile)  # version 1, as before deltas

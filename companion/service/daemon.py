@@ -44,7 +44,7 @@ from companion.method.control import Controller, level_flight_view_limit
 from companion.method.geometry import camera_from_config
 from companion.method.mapper import Mapper
 from companion.method.messages import Frame, NavState
-from companion.method.terrain.codec import encode_tile
+from companion.method.terrain.codec import TilePublications
 from companion.method.terrain.grid import TerrainGrid
 from companion.method.terrain.persistence import count_known_cells, load_latest, snapshot_bytes, write_snapshot_bytes
 from companion.service import realtime
@@ -168,6 +168,8 @@ class Daemon:
         self.snapshot_path = Path(cfg.persistence.directory) / SNAPSHOT_NAME
         self.grid = self._load_map()
         self.grid_lock = threading.Lock()
+        # The revision and layers of each tile as last published, for deltas (docs/terrain.md).
+        self.tile_payloads = TilePublications(cfg.zenoh.tile_deltas, cfg.zenoh.tile_keyframe_every)
         # The mapper runs in the worker thread; mapper_process=True runs it in a child process instead
         # (companion/service/mapper_process.py: the control loop never waits for a GIL the mapper holds, at
         # ~1.5 ms of inter-process cost per frame; measured no better here, docs/performance.md).
@@ -558,9 +560,10 @@ class Daemon:
             if self.bus is None:
                 continue
             with self.grid_lock:
-                changed = [(k, encode_tile(self.grid.tile(k), deflate=deflate)) for k in self.grid.pop_dirty()]
-            for (tx, ty), payload in changed:
-                self.bus.publish_tile(tx, ty, payload)
+                changed = [(k, self.grid.tile(k)) for k in self.grid.pop_dirty()]
+            for (tx, ty), tile in changed:
+                whole, live = self.tile_payloads.encode(tile, deflate)
+                self.bus.publish_tile(tx, ty, whole, live)
 
     def status(self) -> dict[str, Any]:
         now = self.clock.now()

@@ -30,6 +30,9 @@ class Tile:
         of the cell that agree with its height (the evidence in points); floor: optional (T, T)
         float32, the least the terrain in the cell reaches (m, -inf none; docs/terrain.md,
         "Floors"). All three carried by snapshots, never published.
+    revision: the publisher's count of this tile's publications, when it publishes deltas (codec
+        flag bit2; docs/terrain.md, "Tile deltas"); None otherwise. Not a layer: ``same_as``
+        ignores it.
     """
 
     tx: int
@@ -43,6 +46,7 @@ class Tile:
     ceiling: np.ndarray | None = None
     weight: np.ndarray | None = None
     floor: np.ndarray | None = None
+    revision: int | None = None
 
     def __post_init__(self) -> None:
         t = self.height.shape
