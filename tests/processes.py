@@ -65,7 +65,8 @@ def stop(proc: subprocess.Popen, timeout_s: float = 5.0, sig=signal.SIGTERM) -> 
 class ZenohListener:
     """A plain Zenoh session that collects the JSON and tile samples a vehicle publishes. ``tiles``
     holds each tile as the samples make it (a whole tile, or a delta applied to the one held);
-    ``missing_base`` counts deltas that found no base (a listener that joined late)."""
+    ``missing_base`` counts deltas that found no base (the session connected after the tile's
+    first publication), ``missing`` holds their keys until :meth:`complete` asks for them whole."""
 
     def __init__(self, endpoint: str, vehicle: str = "vehicle1"):
         import zenoh
@@ -79,6 +80,7 @@ class ZenohListener:
         self.avoidance: queue.Queue = queue.Queue()
         self.tiles: dict[str, object] = {}  # key -> companion.method.terrain.tile.Tile
         self.missing_base = 0
+        self.missing: set[str] = set()
         root = f"companion/{vehicle}"
         self._subs = [
             self.session.declare_subscriber(f"{root}/status", lambda s: self.status.put(json.loads(s.payload.to_bytes()))),
@@ -94,6 +96,23 @@ class ZenohListener:
             self.tiles[key] = apply_update(self.tiles.get(key), sample.payload.to_bytes())
         except MissingBase:
             self.missing_base += 1
+            self.missing.add(key)
+        else:
+            self.missing.discard(key)
+
+    def complete(self, timeout_s: float = 5.0) -> int:
+        """Ask the vehicle for each tile in ``missing`` whole (as a ground station does); returns
+        how many arrived."""
+        from companion.method.terrain.codec import apply_update
+
+        got = 0
+        for key in sorted(self.missing):
+            for reply in self.session.get(key, timeout=timeout_s):
+                if reply.ok is not None:
+                    self.tiles[key] = apply_update(None, reply.ok.payload.to_bytes())
+                    self.missing.discard(key)
+                    got += 1
+        return got
 
     def wait_status(self, predicate, timeout_s: float) -> dict:
         """The first status message satisfying ``predicate`` (bounded wait)."""

@@ -256,6 +256,9 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
         enough = time.monotonic() + 30
         while known_cells(listener.tiles) < 280 and time.monotonic() < enough:
             pilot.recv("LOCAL_POSITION_NED", 0.5)
+        # A tile whose first samples were deltas (published before this session connected) is asked
+        # for whole, as a ground station does.
+        listener.complete()
         status = listener.latest_status()
     finally:
         rc = end_flight(listener, daemon, sim, pilot)
@@ -264,8 +267,9 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
     assert early_climb is not None, "no climb commanded for the building before reaching it"
     # The camera's view limit is published with the speed limit it takes part in (docs/zenoh.md).
     assert limited, "no avoidance message carried the camera's view distance"
-    for a in limited:  # the view limit is opt-in (avoidance.view_speed_limit): off here, so never set
-        assert a["view_distance_m"] > 0 and a["view_speed_limit_mps"] is None
+    for a in limited:  # the view limit (avoidance.view_speed_limit, on by default) bounds the speed limit
+        assert a["view_distance_m"] > 0 and a["view_speed_limit_mps"] > 0
+        assert a["speed_limit_mps"] <= a["view_speed_limit_mps"] + 1e-3
     assert set(status["avoidance"]) >= {"speed_limit_mps", "view_distance_m", "view_speed_limit_mps"}
     # Where the map lies on the Earth: the EKF origin the simulated ArduPilot reported, and its projection.
     frame = status["frame"]
@@ -277,7 +281,7 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
           f"{building.footprint_ne_m[:, 0].min():.0f} m), altitude {early_climb[1]:.1f} m: {early_climb[2]}")
     # The subscriber's tiles against the world's true heights.
     errors, sigmas = [], []
-    assert listener.missing_base == 0  # subscribed before the first tile: every delta has its base
+    assert not listener.missing  # a delta that found no base here was asked for whole (listener.complete)
     for tile in listener.tiles.values():
         n = tile.height.shape[0]
         ii, jj = np.nonzero(tile.count > 0)
@@ -412,6 +416,7 @@ def test_a_wall_another_vehicle_mapped_makes_the_law_climb_before_the_camera_see
                 if (found is None and a["engaged"] and cell is not None and 39.0 <= cell[0] <= 42.0
                         and (a.get("limiting_height_m") or 0.0) > 25.0 and a["climb_rate_mps"] > 0.5 and north < 39.0):
                     found = (round(north, 1), a)
+        listener.complete()  # tiles first heard as deltas, asked for whole
         status = listener.latest_status()
     finally:
         if scout is not None:

@@ -140,15 +140,14 @@ def test_the_daemon_and_the_engine_share_the_control_decision():
     assert low.send is False  # below control.min_alt_m: take-off is the autopilot's
     high = Controller(cfg).decide(replace(nav, position_ned_m=np.array([0.0, 0.0, -10.0])), grid)
     assert high.send and high.climb_rate_mps > 0 and np.allclose(high.velocity_ned_mps[:2], [5.0, 0.0], atol=0.5)
-    # The view limit is opt-in: off, the route's speed whatever the camera sees.
-    assert np.hypot(*high.velocity_ned_mps[:2]) == pytest.approx(5.0) and high.command.view_speed_limit_mps == math.inf
-    high = Controller(replace(cfg, **{"avoidance.view_speed_limit": True})).decide(
-        replace(nav, position_ned_m=np.array([0.0, 0.0, -10.0])), grid)
-    # The route's speed, slowed to what the camera can see: the mount's 45 deg down and 21 deg of
+    # The view limit is on by default (the same decision as with it set explicitly): the route's speed, slowed to what the camera can see: the mount's 45 deg down and 21 deg of
     # half field of view put the top row 24.7 deg down, in view 19.6 m ahead for 9 m of clearance.
     view = high.command.view_speed_limit_mps
     assert high.command.view_distance_m == pytest.approx(0.9 * 10.0 / math.tan(math.radians(45.0) - math.atan2(239.5 - 8, 625.3)))
     assert view < 5.0 and np.hypot(*high.velocity_ned_mps[:2]) == pytest.approx(view)
+    explicit = Controller(replace(cfg, **{"avoidance.view_speed_limit": True})).decide(
+        replace(nav, position_ned_m=np.array([0.0, 0.0, -10.0])), grid)
+    assert np.allclose(explicit.velocity_ned_mps, high.velocity_ned_mps)
     unlimited = Controller(replace(cfg, **{"avoidance.view_speed_limit": False})).decide(
         replace(nav, position_ned_m=np.array([0.0, 0.0, -10.0])), grid)
     assert np.hypot(*unlimited.velocity_ned_mps[:2]) == pytest.approx(5.0)
