@@ -10,12 +10,11 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from companion.method.messages import TerrainPoints
 from companion.method.avoidance import (
     PullUpLaw,
+    height_restriction,
     law_heights,
     local_surface,
-    height_restriction,
     minimum_climb_rate,
     nominal_climb_rate,
     stopping_time,
