@@ -38,10 +38,9 @@ from __future__ import annotations
 import random
 import struct
 import zlib
+from dataclasses import dataclass
 
 import numpy as np
-
-from dataclasses import dataclass
 
 from companion.method.terrain.tile import Tile
 
