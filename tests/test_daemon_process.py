@@ -271,6 +271,12 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
         assert a["view_distance_m"] > 0 and a["view_speed_limit_mps"] > 0
         assert a["speed_limit_mps"] <= a["view_speed_limit_mps"] + 1e-3
     assert set(status["avoidance"]) >= {"speed_limit_mps", "view_distance_m", "view_speed_limit_mps"}
+    if camera == "synthetic":
+        # Frames rendered at SIM_STATE's truth are timed by the attitude it followed in the same
+        # simulator step, not by its arrival (docs/mavlink.md, "Simulator truth").
+        truth = status["truth"]
+        print(f"truth: {truth['paired']} SIM_STATE paired with their attitude, {truth['arrival']} timed on arrival")
+        assert truth["time_source"] == "ATTITUDE_QUATERNION" and truth["paired"] > 50 * max(truth["arrival"], 1)
     # Where the map lies on the Earth: the EKF origin the simulated ArduPilot reported, and its projection.
     frame = status["frame"]
     assert frame["projection"] == "ardupilot" and frame["axes"] == "NED"
