@@ -38,14 +38,6 @@ COLORMAP = cv2.COLORMAP_TURBO
 MAX_MOSAIC_CELLS = 4096  # per side; larger maps are decimated for display
 
 
-def _decode_update(payload: bytes):
-    # Imported on use: the ground station's wiring (and its tests) must not depend on the
-    # terrain package being importable at module load.
-    from companion.method.terrain.codec import decode_update
-
-    return decode_update(payload)
-
-
 def _has_schema(doc: Any, schema: str) -> bool:
     """True when ``doc`` is a JSON object of exactly ``schema`` (a new major version is a new name)."""
     return isinstance(doc, dict) and doc.get("schema") == schema
@@ -138,17 +130,19 @@ class GroundMap:
 
     def apply_tile(self, key: str, payload: bytes, stamp: int | None = None) -> bool:
         """Decode and store a tile unless it is malformed, misplaced, inconsistent or stale."""
+        # Imported on use: the ground station's wiring (and its tests) must not depend on the
+        # terrain package being importable at module load.
+        from companion.method.terrain.codec import MissingBase, TileDelta, apply_delta, decode_update
+
         index = self.keys.parse_tile(key)
         if index is None:
             return self.reject("bad_tiles", f"not a tile key: {key!r}")
         try:
-            tile = _decode_update(payload)
+            tile = decode_update(payload)
         except ValueError as exc:
             return self.reject("bad_tiles", f"{key}: {exc}")
         if (tile.tx, tile.ty) != index:
             return self.reject("bad_tiles", f"{key}: payload is tile ({tile.tx}, {tile.ty})")
-        from companion.method.terrain.codec import MissingBase, TileDelta, apply_delta
-
         delta = isinstance(tile, TileDelta)  # the cells that changed since its base revision
         if delta:
             try:

@@ -256,7 +256,7 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
         enough = time.monotonic() + 30
         while known_cells(listener.tiles) < 280 and time.monotonic() < enough:
             pilot.recv("LOCAL_POSITION_NED", 0.5)
-        # A tile whose first samples were deltas (published before this session connected) is asked
+        # A tile whose first samples were deltas (published before this subscriber connected) is asked
         # for whole, as a ground station does.
         listener.complete()
         status = listener.latest_status()
