@@ -47,10 +47,10 @@ from companion.config import CompanionConfig, replace  # noqa: E402
 from companion.desk import report  # noqa: E402
 from companion.desk.quality import engine  # noqa: E402
 from companion.method.avoidance import PullUpLaw, nominal_climb_rate  # noqa: E402
-from companion.method.geometry import camera_from_config, quat_to_matrix  # noqa: E402
+from companion.method.geometry import camera_from_config  # noqa: E402
 from companion.method.guidance import WaypointGuidance  # noqa: E402
 from companion.method.mapper import Mapper  # noqa: E402
-from companion.method.mapper.features import HarrisDetector, as_gray  # noqa: E402
+from companion.method.mapper.features import HarrisDetector  # noqa: E402
 from companion.method.messages import TerrainPoints  # noqa: E402
 from companion.method.navigation.assembler import NavAssembler  # noqa: E402
 from companion.method.terrain.grid import TerrainGrid  # noqa: E402
@@ -158,19 +158,6 @@ _command = engine.command
 _velocity_setpoint = engine.velocity_setpoint
 
 
-class _Recorder:
-    """Detector wrapper that keeps the raw pixels of the last frame (the mapper undistorts them)."""
-
-    def __init__(self, detector: HarrisDetector) -> None:
-        self.detector = detector
-        self.uv_raw = np.zeros((0, 2))
-
-    def __call__(self, image):
-        uv, score = self.detector(as_gray(image))
-        self.uv_raw = np.asarray(uv, float).reshape(-1, 2)
-        return uv, score
-
-
 def _boundary_flags(world: World, p_c: np.ndarray, R_nc: np.ndarray, camera, uv_ideal: np.ndarray,
                     ranges: np.ndarray, offset_px: float = 2.0, jump: float = 0.1) -> np.ndarray:
     """(N,) measurements within ``offset_px`` of a depth discontinuity: the range of a neighbouring
@@ -227,7 +214,7 @@ def fly(spec: RunSpec) -> RunResult:
     camera, mount = camera_from_config(cfg.camera)
     grid = TerrainGrid.from_config(cfg.terrain)
     oracle = TerrainGrid.from_config(cfg.terrain)
-    detector = _Recorder(HarrisDetector(cfg.mapper, camera.width, camera.height, cfg.camera.border_px))
+    detector = HarrisDetector(cfg.mapper, camera.width, camera.height, cfg.camera.border_px)
 
     def depth_prior(origin, rays):
         return grid.ray_range(origin, rays, cfg.mapper.prior_max_range_m)
@@ -305,7 +292,7 @@ def fly(spec: RunSpec) -> RunResult:
             image = renderer.render(p_c, R_nc)
             step = mapper.step(nav_f, image)
             frames += 1
-            _track(world, camera, mount, p_c, R_nc, detector.uv_raw, step, mapper, nav_f, tracks, log, t)
+            _track(world, camera, mount, p_c, R_nc, mapper.last_measurements_raw, step, mapper, nav_f, tracks, log, t)
             stats = grid.add_evidence(step.points, step.free_space, step.floors)
             if len(step.points):
                 inserted += stats.inserted
@@ -355,12 +342,14 @@ def _track(world, camera, mount, p_c, R_nc, uv_raw, step, mapper, nav, tracks, l
             elif k is not None:
                 prior_range = float(np.linalg.norm(snap.positions_ned_m[k] - p_c))
             tracks[fid] = [truth[m].copy(), 0.0, bool(bnd[m]), 1, prior_range - rng[m]]
+    edge_ids = set(mapper.db.ids[mapper.db.active & mapper.db.edge].tolist())
     for fid, m in zip(step.matched_ids.tolist(), step.matched_measurements.tolist()):
         tr = tracks.get(fid)
         if tr is None:
             continue
+        # an edge feature's edgels lie anywhere along its edge: their spread says nothing of a mismatch
         d = float(np.linalg.norm(truth[m] - tr[0])) if np.isfinite(truth[m]).all() else np.inf
-        tr[1] = max(tr[1], d)
+        tr[1] = max(tr[1], 0.0 if fid in edge_ids else d)
         tr[2] = tr[2] or bool(bnd[m])
         tr[3] += 1
     pts: TerrainPoints = step.points

@@ -321,7 +321,7 @@ def run_replay(
     refused: dict[str, int] = {}
     examples: dict[str, str] = {}  # reason key -> its first instance, numbers kept
     counts = dict(listed=0, processed=0, without_nav=0, unreadable=0, refused=0)
-    sums = dict(measurements=0, matched=0, initialised=0, removed=0, dropped=0, update_rejected=0, converged_points=0,
+    sums = dict(measurements=0, edgels=0, edge_updates=0, matched=0, initialised=0, removed=0, dropped=0, update_rejected=0, converged_points=0,
                 points_inserted=0, points_rejected_invalid=0, points_rejected_outlier=0, prior_fallback=0)
     path_ne: list[np.ndarray] = []
     frame_times: list[float] = []
@@ -363,6 +363,8 @@ def run_replay(
             sums["dropped"] += step.n_dropped
             sums["update_rejected"] += step.n_update_rejected
             sums["prior_fallback"] += step.n_prior_fallback
+            sums["edgels"] += step.n_edgels
+            sums["edge_updates"] += step.n_edge_matched
             sums["converged_points"] += len(step.points)
             sums["points_inserted"] += stats.inserted
             sums["points_rejected_invalid"] += stats.rejected_invalid

@@ -206,6 +206,8 @@ class Daemon:
         self.frames_no_nav: collections.Counter[str] = collections.Counter()
         self.mapper_errors = 0
         self.points_converged = 0
+        self.edgels_in = 0  # edgels passed to the mapper (docs/mapper.md, "Edgels")
+        self.edge_updates = 0  # edge features updated across their edge
         self.grid_rejections: collections.Counter[str] = collections.Counter()
         self.step_ms = Percentiles()
         self.step_cpu_ms = Percentiles()  # the mapper thread's CPU time per step: step_ms less what other threads took
@@ -403,6 +405,8 @@ class Daemon:
             return
         t0, c0 = time.perf_counter(), time.thread_time()
         step = self.mapper.step(nav, frame.image)
+        self.edgels_in += step.n_edgels
+        self.edge_updates += step.n_edge_matched
         changed = bool(len(step.points) or len(step.free_space) or len(step.floors))
         if changed:
             with self.grid_lock:
@@ -604,6 +608,7 @@ class Daemon:
                 "parameterisation": self.cfg.mapper.parameterisation,
                 "frames_mapped": self.frames_mapped, "frames_without_nav": dict(self.frames_no_nav),
                 "errors": self.mapper_errors, "points_converged": self.points_converged,
+                "edgels": self.edgels_in, "edge_updates": self.edge_updates,
                 "step_ms": self.step_ms.summary(), "step_cpu_ms": self.step_cpu_ms.summary(),
             },
             "map": {**grid, "rejections": dict(self.grid_rejections)},

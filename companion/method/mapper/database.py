@@ -22,7 +22,9 @@ class FeatureDatabase:
     ids (C,) int64 (-1 when free); born_frame (C,) frame number of initialisation; updates (C,)
     number of accepted EKF updates; converged (C,) bool (set once, when first converged);
     template (C, K) the normalised patch of the feature's last accepted measurement (appearance
-    check), has_template (C,) bool.
+    check), has_template (C,) bool; edge (C,) bool: the feature is a point on an image edge
+    (initialised from an edgel, matched to edgels only) and normal (C, 2) the edge's unit normal at
+    its last match (docs/mapper.md, "Edgels").
     """
 
     def __init__(self, capacity: int, state_dim: int, template_size: int = 0):
@@ -42,6 +44,8 @@ class FeatureDatabase:
         self.converged = np.zeros(capacity, dtype=bool)
         self.template = np.zeros((capacity, int(template_size)), np.float32)
         self.has_template = np.zeros(capacity, dtype=bool)
+        self.edge = np.zeros(capacity, dtype=bool)
+        self.normal = np.zeros((capacity, 2))
         self._next_id = 0
 
     @property
@@ -63,8 +67,10 @@ class FeatureDatabase:
         origin: np.ndarray,
         confidence: int,
         frame: int,
+        normal: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Store new features in ``slots`` (K,) (free or being replaced); returns their new ids (K,)."""
+        """Store new features in ``slots`` (K,) (free or being replaced); returns their new ids (K,).
+        ``normal (K, 2)``: the edge normal of each, zero for a corner (None: all corners)."""
         slots = np.asarray(slots, dtype=np.intp)
         k = len(slots)
         ids = np.arange(self._next_id, self._next_id + k, dtype=np.int64)
@@ -80,6 +86,13 @@ class FeatureDatabase:
         self.updates[slots] = 0
         self.converged[slots] = False
         self.has_template[slots] = False
+        if normal is None:
+            self.edge[slots] = False
+            self.normal[slots] = 0.0
+        else:
+            normal = np.asarray(normal, dtype=float).reshape(k, 2)
+            self.normal[slots] = normal
+            self.edge[slots] = (normal != 0.0).any(axis=1)
         return ids
 
     def remove(self, slots: np.ndarray) -> None:

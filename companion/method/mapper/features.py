@@ -41,6 +41,7 @@ __all__ = [
     "black_border_depths",
     "black_border_valid",
     "detect_corners",
+    "detect_edgels",
     "refine_corners",
     "select_features",
     "select_ordered",
@@ -614,3 +615,133 @@ def detect_corners(
     gray = as_gray(image)
     H, W = gray.shape
     return HarrisDetector(cfg, W, H, border_px, mask)(gray)
+
+
+# --------------------------------------------------------------------------------------------
+# Edgels: points on straight image edges, where corners leave room
+# --------------------------------------------------------------------------------------------
+
+# Pre-smoothing before the edge detector (px): sensor noise makes no edges, a 1 px blur moves none.
+EDGEL_BLUR_SIGMA_PX = 1.0
+# OpenCV's Canny on a 3x3 Sobel: a sharp step of D grey levels gives a gradient of ~4 D.
+_SOBEL_STEP_GAIN = 4.0
+# Edge pixels looked at in a frame per edgel asked for, strongest first (a strong edge gives two
+# pixels per spacing-wide cell and one edgel per spacing: 16 leave room for several edges).
+_EDGEL_CANDIDATES_PER_EDGEL = 16
+
+
+def detect_edgels(
+    gray: np.ndarray, corners_uv: np.ndarray, cfg: MapperConfig, border_px: int = 0, valid: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Edgels of a grey frame ``(H, W)`` uint8: points on image edges where the corners leave room
+    (docs/mapper.md, "Edgels").
+
+    A plain surface (a roof, the top of a wall) has no corners, but its outline against what lies
+    behind it is an edge, and an edge measures one coordinate: the distance across it. Pixels on
+    Canny's edges (thin, after a ``EDGEL_BLUR_SIGMA_PX`` blur; a step of at least
+    ``edgel_min_step_grey``) are taken in the bins where the corner detector found nothing
+    (``corners_uv (N, 2)``, raw pixels), strongest gradient first, under the corners' rules: no
+    closer than ``min_distance_px`` to a stronger edgel, at most ``per_bin`` per bin, at most
+    ``max_edgels``. So textured ground, where corners are, gives none; a plain face gives its
+    outline.
+
+    ``valid (H, W)``: the usable pixels (non-zero), e.g. :meth:`HarrisDetector.valid_region`, so
+    that a mask's or a black border's outline makes no edgels; by default the image-edge margin and
+    any black border.
+
+    Returns ``uv (E, 2)`` float64 raw pixels, ``normal (E, 2)`` unit vectors across the edge (the
+    grey-level gradient's direction) and ``strength (E,)`` the gradient (grey levels per pixel),
+    in that order."""
+    gray = np.asarray(gray)
+    H, W = gray.shape[:2]
+    empty = (np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+    m = effective_margin(cfg, border_px)
+    if cfg.max_edgels <= 0 or 2 * m >= min(H, W):
+        return empty
+    # only bins without a corner take edgels: Canny runs on those bins only (each bin row's runs
+    # of such bins, padded by the filters' reach), the rest of the frame stays zero
+    corners = np.asarray(corners_uv, dtype=float).reshape(-1, 2)
+    corners = corners[np.isfinite(corners).all(axis=1)]
+    no_corner = np.bincount(_bin_of(corners, W, H, cfg.bins_x, cfg.bins_y), minlength=cfg.bins_x * cfg.bins_y) == 0
+    if not no_corner.any():
+        return empty
+    smooth = cv2.GaussianBlur(gray, (0, 0), EDGEL_BLUR_SIGMA_PX)
+    high = _SOBEL_STEP_GAIN * cfg.edgel_min_step_grey
+    edges = np.zeros((H, W), np.uint8)
+    # pixel x is in bin floor(x bins_x / W) (as _bin_of): bin b spans ceil(b W / bins_x) .. ceil((b + 1) W / bins_x) - 1
+    x_edge = -(-np.arange(cfg.bins_x + 1) * W // cfg.bins_x)
+    y_edge = -(-np.arange(cfg.bins_y + 1) * H // cfg.bins_y)
+    pad = 3
+    for by, row in enumerate(no_corner.reshape(cfg.bins_y, cfg.bins_x)):
+        for b0, b1 in _runs(row):
+            y0, y1, x0, x1 = y_edge[by], y_edge[by + 1], x_edge[b0], x_edge[b1]
+            Y0, Y1, X0, X1 = max(y0 - pad, 0), min(y1 + pad, H), max(x0 - pad, 0), min(x1 + pad, W)
+            crop = cv2.Canny(np.ascontiguousarray(smooth[Y0:Y1, X0:X1]), 0.5 * high, high, L2gradient=True)
+            edges[y0:y1, x0:x1] = crop[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0]
+    edges[:m], edges[H - m:], edges[:, :m], edges[:, W - m:] = 0, 0, 0, 0
+    if valid is None:  # the corner detector's valid region when given, else the black border's
+        depths = black_border_depths(gray)
+        valid = None if depths is None else black_border_valid(depths, (H, W), m)
+    if valid is not None:
+        edges[valid == 0] = 0
+    flat = np.flatnonzero(edges)
+    if len(flat) == 0:
+        return empty
+    iy, ix = np.divmod(flat, W)
+    # the gradient at those pixels only: 3x3 Sobel of the smoothed image, per grey level per pixel
+    sm = smooth.astype(np.float32).reshape(-1)
+    def at(dy, dx):
+        return sm[flat + dy * W + dx]
+    gx = (at(-1, 1) - at(-1, -1)) + 2.0 * (at(0, 1) - at(0, -1)) + (at(1, 1) - at(1, -1))
+    gy = (at(1, -1) - at(-1, -1)) + 2.0 * (at(1, 0) - at(-1, 0)) + (at(1, 1) - at(-1, 1))
+    g = np.column_stack([gx, gy]).astype(np.float64) / (2.0 * _SOBEL_STEP_GAIN)
+    strength = np.sqrt((g * g).sum(axis=1))
+    # the strongest _EDGEL_CANDIDATES_PER_EDGEL x max_edgels pixels, of those the strongest of each
+    # cell of half the spacing (two in one cell are too close anyway), then strongest first under the
+    # spacing and the per-bin cap
+    top = strongest(strength, min(len(strength), _EDGEL_CANDIDATES_PER_EDGEL * cfg.max_edgels))
+    cell = max(1, int(cfg.min_distance_px // 2))
+    cell_id = (iy[top] // cell) * (W // cell + 1) + ix[top] // cell
+    _, first = np.unique(cell_id, return_index=True)  # (top is strongest first: the first of each cell)
+    pick = top[np.sort(first)]
+    xy = np.column_stack([ix[pick], iy[pick]]).astype(np.float64)
+    # the corners first (kept: they are the detector's), then the edgels strongest first
+    kept = suppress_within(np.concatenate([corners, xy]), cfg.min_distance_px)[len(corners):]
+    keep = np.flatnonzero(kept)
+    keep = keep[_bin_rank(xy[keep], W, H, cfg.bins_x, cfg.bins_y) < cfg.per_bin][: cfg.max_edgels]
+    g, strength = g[pick[keep]], strength[pick[keep]]
+    normal = g / strength[:, None]
+    return _refine_across(smooth, xy[keep], normal), normal, strength
+
+
+def _refine_across(smooth: np.ndarray, xy: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Edgels ``xy (E, 2)`` moved across their edge (along the unit ``normal``) to the sub-pixel
+    peak of the grey-level derivative: the derivative at -1, 0 and +1 px along the normal (central
+    differences of bilinear samples of ``smooth``), the vertex of the parabola through them
+    (Canny's pixel is up to half a pixel off; a corner gets cornerSubPix)."""
+    if len(xy) == 0:
+        return xy
+    k = np.array([-1.5, -0.5, 0.5, 1.5])
+    pts = xy[:, None, :] + k[None, :, None] * normal[:, None, :]  # (E, 4, 2)
+    grey = cv2.remap(smooth.astype(np.float32), pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    d = np.diff(grey.astype(np.float64), axis=1)  # derivative at -1, 0, +1 px (E, 3)
+    curvature = d[:, 0] - 2.0 * d[:, 1] + d[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        offset = np.where(curvature < 0, 0.5 * (d[:, 0] - d[:, 2]) / curvature, 0.0)
+    offset = np.clip(np.nan_to_num(offset), -0.5, 0.5)
+    return xy + offset[:, None] * normal
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``[(start, stop), ...]`` of the runs of True in a 1-D bool array."""
+    padded = np.concatenate([[False], mask, [False]]).astype(np.int8)
+    change = np.flatnonzero(np.diff(padded))
+    return list(zip(change[::2].tolist(), change[1::2].tolist()))
+
+
+def _bin_of(xy: np.ndarray, width: int, height: int, bins_x: int, bins_y: int) -> np.ndarray:
+    """Bin number ``(K,)`` (row by row) of points ``xy (K, 2)`` inside the image."""
+    bx = np.clip((xy[:, 0] * (bins_x / width)).astype(np.int64), 0, bins_x - 1)
+    by = np.clip((xy[:, 1] * (bins_y / height)).astype(np.int64), 0, bins_y - 1)
+    return by * bins_x + bx

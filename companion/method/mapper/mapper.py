@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from statistics import NormalDist
 from dataclasses import dataclass, field
 from types import ModuleType
 
@@ -40,10 +41,14 @@ from companion.method.mapper.matching import (
     near_stored_pairs,
 )
 from companion.method.mapper.projection import CameraPose, camera_ray_from_pixel
-from companion.method.mapper.update import ekf_update
+from companion.method.mapper.update import ekf_update, ekf_update_across
 from companion.method.messages import FreeSpaceRays, NavState, TerrainFloors, TerrainPoints
 
 Detector = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+# Edgels of one edge in a gate lie within this many pixel sigmas of each other across it; a gate
+# whose edgels spread wider holds two edges (docs/mapper.md, "Edgels").
+EDGE_SPREAD_SIGMA = 3.0
 
 PARAMETERISATIONS: dict[str, ModuleType] = {"inverse_depth": inverse_depth, "cartesian": cartesian}
 
@@ -57,6 +62,14 @@ def _in_image(uv: np.ndarray, camera: PinholeCamera) -> np.ndarray:
     which costs more than the test on a few hundred points."""
     u, v = uv[:, 0], uv[:, 1]
     return (u >= 0.0) & (u <= camera.width - 1) & (v >= 0.0) & (v <= camera.height - 1)
+
+
+def chi2_one_dof(chi2_two_dof: float) -> float:
+    """The 1-dof gate with the same tail probability as a 2-dof gate: the 2-dof chi-square has
+    ``P(Z < g) = 1 - exp(-g / 2)``, and a 1-dof one is the square of a standard normal, so
+    ``g_1 = Phi^-1((1 + p) / 2)^2`` (9.21 -> 6.63, both 99 %)."""
+    p = -math.expm1(-0.5 * chi2_two_dof)
+    return NormalDist().inv_cdf(0.5 * (1.0 + min(p, 1.0 - 1e-15))) ** 2
 
 
 def _concatenate(t_s: float, parts: list[TerrainPoints]) -> TerrainPoints:
@@ -93,6 +106,8 @@ class MapperStep:
     map's carving.
     floors: lower bounds on the terrain's height from the features not yet converged
     (``mapper.floor_max_depth_sigma_m``; docs/mapper.md, "Bounds of an unconverged feature").
+    n_edgels: measurements that were edgels (docs/mapper.md, "Edgels"); n_edge_matched: edge
+    features updated across their edge.
     """
 
     points: TerrainPoints
@@ -116,6 +131,8 @@ class MapperStep:
     removed_ids: np.ndarray = field(default_factory=_empty_ids)
     free_space: FreeSpaceRays = field(default_factory=FreeSpaceRays.empty)
     floors: TerrainFloors = field(default_factory=TerrainFloors.empty)
+    n_edgels: int = 0
+    n_edge_matched: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -208,6 +225,18 @@ def _checked_pose_covariance(nav: NavState) -> tuple[str, np.ndarray | None]:
     return "", P_x
 
 
+@dataclass(frozen=True, slots=True)
+class _EdgePairs:
+    """Edge features matched to edgels: ``point`` (K,) rows of the step's features, ``meas`` (K,)
+    rows of its measurements; ``ambiguous`` and ``near`` (M,) masks of measurements (see
+    :meth:`Mapper._match_edges`)."""
+
+    point: np.ndarray
+    meas: np.ndarray
+    ambiguous: np.ndarray
+    near: np.ndarray
+
+
 class Mapper:
     """Monocular feature mapper with a fixed-capacity database (seed 000, section II).
 
@@ -242,12 +271,18 @@ class Mapper:
         self.model = PARAMETERISATIONS[cfg.parameterisation]
         self.prior_sigma = cfg.sigma_rho if cfg.parameterisation == "inverse_depth" else cfg.sigma_depth_rel
         self.R_img = np.diag([cfg.pixel_sigma_px**2, cfg.pixel_sigma_px**2])
+        self.edge_gate = chi2_one_dof(cfg.gate_chi2)  # across an edge: 1 dof, the corners' probability
+        self.edge_exclusion = chi2_one_dof(cfg.init_exclusion_chi2)
+        self.edge_min_cos = math.cos(math.radians(cfg.edgel_max_turn_deg))
         self.db = FeatureDatabase(cfg.max_features, self.model.STATE_DIM, cfg.appearance_patch_px**2)
         self.frame = 0
         self._detector = None
         self._detector_shape: tuple[int, ...] | None = None
         self._last_nav_t = np.inf  # time of the last accepted step (no drift before the first)
         self._last_nav_p = np.zeros(3)  # body position at that step
+        # the last step's measurements as :meth:`step` detected them (raw pixels, corners then
+        # edgels; the indices of MapperStep.*_measurements), for diagnostics
+        self.last_measurements_raw = np.zeros((0, 2))
 
     # ------------------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -270,13 +305,73 @@ class Mapper:
         else:
             uv_raw, _scores = self._harris(image)
         uv_raw = np.asarray(uv_raw, dtype=float).reshape(-1, 2)
+        normals = None
+        if self.cfg.max_edgels > 0 or self.cfg.appearance_patch_px > 0:
+            from companion.method.mapper.features import as_gray, detect_edgels
+
+            gray = as_gray(image)
+        if self.cfg.max_edgels > 0:
+            from companion.method.mapper.features import HarrisDetector
+
+            corner_detector = self.detector if self.detector is not None else self._detector
+            # a static mask's or a black border's outline is an edge too: the corners' valid region
+            valid = corner_detector.valid_region(gray) if isinstance(corner_detector, HarrisDetector) else None
+            edge_uv, edge_n, _strength = detect_edgels(gray, uv_raw, self.cfg, self.border_px, valid)
+            if len(edge_uv):
+                edge_n = self._undistorted_normals(edge_uv, edge_n)
+                # the camera's translation since the last step (poses only: a pose-only recording
+                # maps as the live flight did); none before the first step
+                moved = np.zeros(3)
+                if math.isfinite(self._last_nav_t):
+                    moved = np.asarray(nav.position_ned_m, dtype=float) - self._last_nav_p
+                pose = CameraPose.from_nav(nav.position_ned_m, nav.quaternion_wxyz, self.mount)
+                crossing = self._flow_crossing(pose.R_nc, moved, self.camera.undistort(edge_uv), edge_n)
+                keep = crossing >= math.sin(math.radians(self.cfg.edgel_min_crossing_deg))
+                normals = np.concatenate([np.zeros_like(uv_raw), edge_n[keep]])
+                uv_raw = np.concatenate([uv_raw, edge_uv[keep]])
+        self.last_measurements_raw = uv_raw
         patches = None
         if self.cfg.appearance_patch_px > 0:
-            from companion.method.mapper.features import as_gray
-
             # cut later, for the few measurements that need one (appearance.FramePatches)
-            patches = FramePatches(as_gray(image), uv_raw, self.cfg.appearance_patch_px)
-        return self._step_checked(nav, P_x, self.camera.undistort(uv_raw), patches)
+            patches = FramePatches(gray, uv_raw, self.cfg.appearance_patch_px)
+        return self._step_checked(nav, P_x, self.camera.undistort(uv_raw), patches, normals)
+
+    def _flow_crossing(self, R_nc: np.ndarray, translation_ned: np.ndarray, uv: np.ndarray, normal: np.ndarray) -> np.ndarray:
+        """``|sin|`` of the angle (E,) at which each edge (ideal pixels ``uv`` (E, 2), unit normals
+        (E, 2)) crosses the image motion that the camera's translation ``translation_ned`` (3,)
+        gives its pixel, the camera's attitude ``R_nc`` (camera -> NED) (docs/mapper.md, "Edgels"):
+        only that motion depends on depth, and across the edge is all an edgel measures. A camera
+        moving by ``v`` (camera frame, ``v_f`` along the optical axis) moves the normalised image
+        point ``x`` of a point at depth ``Z`` by ``(x v_f - v_xy) / Z``; its direction is the same for
+        every depth. 0 where the camera does not move or the pixel is the epipole."""
+        v = R_nc.T @ np.asarray(translation_ned, dtype=float)  # (forward, right, down)
+        cam = self.camera
+        x = (uv[:, 0] - cam.cx) / cam.fx
+        y = (uv[:, 1] - cam.cy) / cam.fy
+        flow = np.column_stack([cam.fx * (x * v[0] - v[1]), cam.fy * (y * v[0] - v[2])])  # pixels, up to 1 / Z
+        size = np.sqrt((flow * flow).sum(axis=1))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            crossing = np.abs((flow * normal).sum(axis=1)) / size
+        return np.where(size > 1e-9 * max(cam.fx, cam.fy), crossing, 0.0)
+
+    def _bins(self, uv: np.ndarray) -> np.ndarray:
+        """The detector's bin (row by row) of each pixel ``uv`` (K, 2), clipped to the image."""
+        cfg, cam = self.cfg, self.camera
+        bx = np.clip((uv[:, 0] * (cfg.bins_x / cam.width)).astype(np.int64), 0, cfg.bins_x - 1)
+        by = np.clip((uv[:, 1] * (cfg.bins_y / cam.height)).astype(np.int64), 0, cfg.bins_y - 1)
+        return by * cfg.bins_x + bx
+
+    def _undistorted_normals(self, uv_raw: np.ndarray, normal_raw: np.ndarray) -> np.ndarray:
+        """Unit normals (E, 2) in ideal pixels of edges through raw pixels ``uv_raw`` (E, 2) with raw
+        normals ``normal_raw`` (E, 2): the edge's direction is carried through the undistortion by
+        a second point 2 px along it."""
+        if not np.any(self.camera.distortion):
+            return normal_raw
+        along = np.column_stack([-normal_raw[:, 1], normal_raw[:, 0]])
+        d = self.camera.undistort(uv_raw + 2.0 * along) - self.camera.undistort(uv_raw)
+        d /= np.maximum(np.sqrt((d * d).sum(axis=1, keepdims=True)), 1e-12)
+        n = np.column_stack([d[:, 1], -d[:, 0]])
+        return np.where(((n * normal_raw).sum(axis=1) < 0)[:, None], -n, n)
 
     def _harris(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The default detector, built once per image size (its buffers are reused frame to frame)."""
@@ -288,11 +383,14 @@ class Mapper:
             self._detector_shape = gray.shape
         return self._detector(gray)
 
-    def step_measurements(self, nav: NavState, uv_ideal: np.ndarray, descriptors: np.ndarray | None = None) -> MapperStep:
+    def step_measurements(self, nav: NavState, uv_ideal: np.ndarray, descriptors: np.ndarray | None = None,
+                          normals: np.ndarray | None = None) -> MapperStep:
         """One mapper step from ideal (undistorted) pixels ``uv_ideal`` (N, 2) in score order.
 
         descriptors: optional (N, K) normalised patches (:func:`patch_descriptors`, K =
         ``appearance_patch_px^2``); with them a pair must also pass the appearance check.
+        normals: optional (N, 2): a unit normal for each measurement that is an edgel (a point on
+        an edge, measured across it only), zeros for a corner (docs/mapper.md, "Edgels").
         """
         uv = np.asarray(uv_ideal, dtype=float)
         if uv.size == 0:
@@ -303,29 +401,41 @@ class Mapper:
             descriptors = np.asarray(descriptors, dtype=np.float32)
             if descriptors.shape != (len(uv), self.db.template.shape[1]):
                 raise ValueError(f"descriptors must have shape ({len(uv)}, {self.db.template.shape[1]}), got {descriptors.shape}")
+        if normals is not None:
+            normals = np.asarray(normals, dtype=float)
+            if normals.shape != uv.shape:
+                raise ValueError(f"normals must have shape {uv.shape}, got {normals.shape}")
         reason, P_x = _checked_pose_covariance(nav)
         if reason:
             return self._refused(nav, len(uv), reason)
-        return self._step_checked(nav, P_x, uv, None if descriptors is None else GivenPatches(descriptors))
+        return self._step_checked(nav, P_x, uv, None if descriptors is None else GivenPatches(descriptors), normals)
 
     def _step_checked(
-        self, nav: NavState, P_x: np.ndarray, uv: np.ndarray, patches: FramePatches | GivenPatches | None
+        self, nav: NavState, P_x: np.ndarray, uv: np.ndarray, patches: FramePatches | GivenPatches | None,
+        normals: np.ndarray | None = None,
     ) -> MapperStep:
         """:meth:`step_measurements` after its input checks: ``nav`` accepted by :func:`check_nav`
         with its symmetrised pose covariance ``P_x`` (6, 6), ``uv`` (N, 2) float, ``patches`` the
-        measurements' normalised patches (N of them, ``rows(index)`` -> (k, K) float32) or None."""
+        measurements' normalised patches (N of them, ``rows(index)`` -> (k, K) float32) or None,
+        ``normals`` (N, 2) the edgels' unit normals (zero rows: corners) or None (all corners)."""
         cfg, db, model = self.cfg, self.db, self.model
         self.frame += 1
         pose = CameraPose.from_nav(nav.position_ned_m, nav.quaternion_wxyz, self.mount)
 
         valid = _in_image(uv, self.camera)  # finite and inside
         # (count_nonzero == len is .all() at a third of its cost, which matters a dozen times a step)
+        if normals is not None:
+            unit = np.sqrt((normals * normals).sum(axis=1))
+            valid &= np.isfinite(unit) & ((unit == 0.0) | (np.abs(unit - 1.0) < 1e-3))
         if np.count_nonzero(valid) == len(valid):  # all valid: the usual case (the detector's corners)
-            meas_index, z, desc = np.arange(len(uv)), uv, patches
+            meas_index, z, desc, n_z = np.arange(len(uv)), uv, patches, normals
         else:
             meas_index = np.flatnonzero(valid)  # positions in the caller's array
             z = uv[valid]
             desc = patches.subset(meas_index) if patches is not None else None
+            n_z = None if normals is None else normals[valid]
+        edgel = np.zeros(len(z), bool) if n_z is None else (n_z != 0.0).any(axis=1)
+        any_edges = bool(edgel.any()) or bool(db.edge[db.active_slots()].any())
         n_dropped = int(len(uv) - len(z))
         emitted: list[TerrainPoints] = []
 
@@ -379,6 +489,9 @@ class Mapper:
         S_inverse = inverse_2x2(S)  # (S^-1, positive definite): the gates', and the update's when its S is this one
         pairs = candidate_pairs(z, uv_pred, S, max(cfg.gate_chi2, cfg.init_exclusion_chi2), cfg.min_distance_px, S_inverse)
         gated = (pairs.Z < cfg.gate_chi2).nonzero()[0]
+        edge_feature = db.edge[slots]
+        if any_edges:  # corners are matched to corners and edge features to edgels (below)
+            gated = gated[~edge_feature[pairs.point[gated]] & ~edgel[pairs.meas[gated]]]
         pair_point, pair_meas, pair_Z = pairs.point[gated], pairs.meas[gated], pairs.Z[gated]
         if desc is not None:
             # Appearance: a pair whose patches do not correlate is not a candidate at all.
@@ -391,6 +504,10 @@ class Mapper:
             like = ~(looks & (ncc < cfg.appearance_min_ncc))
             pair_point, pair_meas, pair_Z = pair_point[like], pair_meas[like], pair_Z[like]
         point_idx, match_idx, ambiguous = gate_and_match_pairs(pair_point, pair_meas, pair_Z, cfg.gate_chi2, len(z))
+        edge_pairs = None
+        if any_edges:
+            edge_pairs = self._match_edges(z, n_z, edgel, uv_pred, S, edge_feature, slots, desc)
+            ambiguous |= edge_pairs.ambiguous
 
         # Update (eqs. 6-9), all matched features at once.
         upd = slots[point_idx]
@@ -401,13 +518,35 @@ class Mapper:
             y[point_idx], P[point_idx], z[match_idx] - uv_pred[point_idx], C_x[point_idx], C_y[point_idx], P_meas, self.R_img,
             shared,
         )
+        if desc is not None:
+            corner_templates = pair_patches[pair_row[match_idx[ok]]]
+        n_edge_matched = 0
+        if edge_pairs is not None and len(edge_pairs.point):
+            # across the edge only (update.ekf_update_across): n^T (z - g), n^T C, n^T R_eff n
+            e_point, e_meas = edge_pairs.point, edge_pairs.meas
+            n = n_z[e_meas]
+            nu = ((z[e_meas] - uv_pred[e_point]) * n).sum(axis=1)
+            H_y = np.einsum("ni,nij->nj", n, C_y[e_point])
+            r = np.full(len(e_point), cfg.pixel_sigma_px**2)
+            if not navigation_term_vanishes(P_meas, C_x):
+                H_x = np.einsum("ni,nij->nj", n, C_x[e_point])
+                r += np.einsum("ni,ij,nj->n", H_x, P_meas, H_x)
+            y_e, P_e, ok_e = ekf_update_across(y[e_point], P[e_point], nu, H_y, r)
+            point_idx = np.concatenate([point_idx, e_point])
+            match_idx = np.concatenate([match_idx, e_meas])
+            y_new, P_new, ok = np.concatenate([y_new, y_e]), np.concatenate([P_new, P_e]), np.concatenate([ok, ok_e])
+            upd = slots[point_idx]
+            db.normal[slots[e_point[ok_e]]] = n[ok_e]
+            n_edge_matched = int(ok_e.sum())
+            if desc is not None:
+                corner_templates = np.concatenate([corner_templates, desc.rows(e_meas[ok_e])])
         y_new = model.normalise_state(y_new)
         db.y[upd] = y_new
         db.P[upd] = P_new
         updated = upd[ok]
         db.updates[updated] += 1
         if desc is not None:
-            db.template[updated] = pair_patches[pair_row[match_idx[ok]]]
+            db.template[updated] = corner_templates
             db.has_template[updated] = True
 
         updated_meas = match_idx[ok]  # measurement of each accepted update
@@ -427,7 +566,9 @@ class Mapper:
         free_space = self._free_space(nav.t_s, pose.p_c, y_upd, P_upd, R_upd, origin_upd, X_upd)
         rel = model.relative_depth_sigma(y_upd, P_upd, R_upd, origin_upd)
         depth_sigma = rel * model.depth_from_origin(y_upd, R_upd, origin_upd)
-        ready = (db.updates[updated] >= cfg.converge_min_updates) & (rel < cfg.converged_rel_depth_sigma)
+        # an edgel measures one coordinate, a corner two: an edge feature needs twice the updates
+        min_updates = np.where(db.edge[updated], 2 * cfg.converge_min_updates, cfg.converge_min_updates)
+        ready = (db.updates[updated] >= min_updates) & (rel < cfg.converged_rel_depth_sigma)
         newly = ~db.converged[updated] & ready & (depth_sigma < cfg.converged_max_depth_sigma_m)
         bounding = ~db.converged[updated] & ~newly & ready & (depth_sigma < cfg.floor_max_depth_sigma_m)
         floors = self._floors(nav.t_s, y_upd[bounding], P_upd[bounding], R_upd[bounding], origin_upd[bounding],
@@ -442,7 +583,18 @@ class Mapper:
         used = np.zeros(len(z), dtype=bool)
         used[match_idx] = True
         blocked = ambiguous | near_stored_pairs(pairs, len(z), cfg.init_exclusion_chi2, cfg.min_distance_px)
+        if edge_pairs is not None:
+            blocked |= edge_pairs.near
         candidates = np.flatnonzero(~used & ~blocked)
+        if any_edges and len(candidates):
+            # an edgel in a bin with no corner and no stored feature in view comes before the
+            # corners: a plain face's outline would otherwise never get a slot among the corners
+            # of a textured ground
+            n_bins = cfg.bins_x * cfg.bins_y
+            bins = self._bins(z[candidates])
+            seen = np.bincount(self._bins(uv_pred), minlength=n_bins) + np.bincount(self._bins(z[~edgel]), minlength=n_bins)
+            first = edgel[candidates] & (seen[bins] == 0)
+            candidates = np.concatenate([candidates[first], candidates[~first]])
         free = db.free_slots()
         replaceable = unmatched[db.confidence[unmatched] < init_index]
         replaceable = replaceable[np.lexsort((db.born_frame[replaceable], db.confidence[replaceable]))]
@@ -473,7 +625,8 @@ class Mapper:
             y0, P0, R_ref0 = model.initialise_features(
                 z[chosen], ranges, pose, self.camera, self.R_img, self.prior_sigma, P_meas
             )
-            new_ids = db.insert(targets, y0, P0, R_ref0, pose.p_c, int(round(init_index)), self.frame)
+            new_ids = db.insert(targets, y0, P0, R_ref0, pose.p_c, int(round(init_index)), self.frame,
+                                None if n_z is None else n_z[chosen])
             if desc is not None:
                 db.template[targets] = desc.rows(chosen)
                 db.has_template[targets] = True
@@ -500,9 +653,69 @@ class Mapper:
             removed_ids=np.concatenate(removed_ids),
             free_space=free_space,
             floors=floors,
+            n_edgels=int(edgel.sum()),
+            n_edge_matched=n_edge_matched,
         )
 
     # ------------------------------------------------------------------------------------------
+    def _match_edges(self, z: np.ndarray, n_z: np.ndarray | None, edgel: np.ndarray, uv_pred: np.ndarray,
+                     S: np.ndarray, edge_feature: np.ndarray, slots: np.ndarray, desc) -> "_EdgePairs":
+        """Edge features (rows of ``uv_pred``, ``S`` where ``edge_feature``) matched to edgels (rows
+        of ``z``, ``n_z`` where ``edgel``) (docs/mapper.md, "Edgels"). A pair is a candidate when
+
+        * the distance across the measured edge, ``nu = n^T (z - g)``, is inside the 1-dof gate
+          with the same probability as the corners' 2-dof one: ``nu^2 / (n^T S n) < g_1``;
+        * along the edge the measurement is no farther from the prediction than the detector's
+          spacing plus the prediction's own gate: ``|t^T (z - g)| < min_distance_px + sqrt(g_2 t^T S t)``
+          (a straight edge says nothing about where along it the point is, but it must be the
+          stretch of edge the feature is on);
+        * the edge turned by at most ``edgel_max_turn_deg`` since the feature's last match, the same
+          way round (``n^T n_feature >= cos``: bright and dark sides not swapped);
+        * the patches correlate (the corners' appearance check).
+
+        A feature whose gate holds two edges (edgels more than ``EDGE_SPREAD_SIGMA`` pixel sigmas
+        apart across the edge) is not matched: an edge's patch does not tell two edges apart. Then mutual nearest by ``nu^2 / (n^T S n)``, as for corners. Also returns the edgels inside
+        some edge feature's gate but not matched (``ambiguous``) and those within the
+        initialisation exclusion (``near``), neither of which starts a new feature."""
+        cfg = self.cfg
+        fe = np.flatnonzero(edge_feature)
+        me = np.flatnonzero(edgel)
+        ambiguous = np.zeros(len(z), bool)
+        near = np.zeros(len(z), bool)
+        if len(fe) == 0 or len(me) == 0:
+            return _EdgePairs(_empty_ids(), _empty_ids(), ambiguous, near)
+        e = z[me][None, :, :] - uv_pred[fe][:, None, :]  # (F, E, 2)
+        n = n_z[me][None, :, :]
+        t = np.stack([-n[..., 1], n[..., 0]], axis=-1)
+        Sf = S[fe][:, None, :, :]  # (F, 1, 2, 2)
+        def quad(a):  # a^T S a for the (F, E, 2) directions a
+            return a[..., 0] ** 2 * Sf[..., 0, 0] + 2 * a[..., 0] * a[..., 1] * Sf[..., 0, 1] + a[..., 1] ** 2 * Sf[..., 1, 1]
+        nu = (e * n).sum(axis=-1)
+        along = (e * t).sum(axis=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            Z = nu * nu / quad(n)
+        reach = np.abs(along) < cfg.min_distance_px + np.sqrt(cfg.gate_chi2 * quad(t))
+        turn = (n * self.db.normal[slots[fe]][:, None, :]).sum(axis=-1) >= self.edge_min_cos
+        close = reach & turn
+        near[me[((close & (Z < self.edge_exclusion)) | ((e * e).sum(axis=-1) < cfg.min_distance_px**2)).any(axis=0)]] = True
+        inside = close & (Z < self.edge_gate)
+        # One edge looks like another (a step's patch correlates with any step of the same turn and
+        # polarity), so a feature whose gate holds two edges is not updated: it could be either.
+        # Edgels of one edge are at the same distance across it (within the pixel noise); two edges
+        # are farther apart than that.
+        nu_in = np.where(inside, nu, np.nan)
+        with np.errstate(invalid="ignore"):
+            spread = np.nanmax(nu_in, axis=1, initial=-np.inf) - np.nanmin(nu_in, axis=1, initial=np.inf)
+        inside &= (spread <= EDGE_SPREAD_SIGMA * cfg.pixel_sigma_px)[:, None]
+        fi, mi = np.nonzero(inside)
+        point, meas, Zp = fe[fi], me[mi], Z[fi, mi]
+        if desc is not None and len(point):
+            looks = self.db.has_template[slots[point]]
+            ncc = pair_correlation(self.db.template[slots[point]], desc.rows(meas))
+            like = ~(looks & (ncc < cfg.appearance_min_ncc))
+            point, meas, Zp = point[like], meas[like], Zp[like]
+        p_idx, m_idx, amb = gate_and_match_pairs(point, meas, Zp, self.edge_gate, len(z))
+        return _EdgePairs(p_idx, m_idx, amb, near)
     def _free_space(self, t_s: float, camera_ned: np.ndarray, y: np.ndarray, P: np.ndarray, R_ref: np.ndarray,
                     origin: np.ndarray, X: np.ndarray) -> FreeSpaceRays:
         """The segments this frame saw through (docs/mapper.md, "Bounds of an unconverged feature"):

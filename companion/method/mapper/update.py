@@ -9,6 +9,10 @@ covariance is updated in Joseph form (equal to eq. 9 for this gain, but symmetri
 semi-definite by construction)::
 
     P+ = (I - K C_y) P (I - K C_y)^T + K R_eff K^T
+
+An edge feature (docs/mapper.md, "Edgels") is measured across its edge only: the scalar
+``n^T (z - g)`` with ``n`` the edge's unit normal, Jacobians ``n^T C`` and noise ``n^T R n``
+(:func:`ekf_update_across`, the same equations with 1 x D rows).
 """
 
 from __future__ import annotations
@@ -71,6 +75,45 @@ def ekf_update(
 
     ok &= (P_new.diagonal(axis1=1, axis2=2) >= 0).all(axis=1)
     if not np.isfinite(y_new.sum() + P_new.sum()):  # (a finite sum: all finite, the usual case)
+        ok &= np.isfinite(y_new).all(axis=1) & np.isfinite(P_new).all(axis=(1, 2))
+    if np.count_nonzero(ok) < n:
+        y_new[~ok] = y[~ok]
+        P_new[~ok] = P_y[~ok]
+    return y_new, P_new, ok
+
+
+def ekf_update_across(
+    y: np.ndarray,
+    P_y: np.ndarray,
+    innovation: np.ndarray,
+    H_y: np.ndarray,
+    r: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eqs. 7-9 (Joseph form) for N scalar measurements at once: the distance across an edge.
+
+    y (N, D), P_y (N, D, D), innovation ``n^T (z - g)`` (N,), ``H_y = n^T C_y`` (N, D) and
+    ``r = n^T (C_x P_x C_x^T + R_img) n`` (N,) -> updated y, P_y and ``ok`` (N,) as
+    :func:`ekf_update`. With ``s = H P H^T + r`` and ``K = P H^T / s``::
+
+        y+ = y + K nu,   P+ = (I - K H) P (I - K H)^T + r K K^T
+
+    which is :func:`ekf_update` in the limit of an infinite noise along the edge
+    (tests/test_edgels.py)."""
+    y = np.asarray(y, dtype=float)
+    P_y = np.asarray(P_y, dtype=float)
+    n, dim = y.shape
+    if n == 0:
+        return y.copy(), P_y.copy(), np.zeros(0, dtype=bool)
+    PH = np.einsum("nij,nj->ni", P_y, H_y)  # (N, D)
+    s = np.einsum("ni,ni->n", H_y, PH) + r
+    ok = np.isfinite(s) & (s > 0)
+    K = PH / np.where(ok, s, 1.0)[:, None]
+    y_new = y + K * np.where(ok, innovation, 0.0)[:, None]
+    I_KH = _identity(dim) - K[:, :, None] * H_y[:, None, :]
+    P_new = I_KH @ P_y @ I_KH.transpose(0, 2, 1) + r[:, None, None] * (K[:, :, None] * K[:, None, :])
+    P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
+    ok &= (P_new.diagonal(axis1=1, axis2=2) >= 0).all(axis=1)
+    if not np.isfinite(y_new.sum() + P_new.sum()):
         ok &= np.isfinite(y_new).all(axis=1) & np.isfinite(P_new).all(axis=(1, 2))
     if np.count_nonzero(ok) < n:
         y_new[~ok] = y[~ok]
