@@ -270,6 +270,20 @@ def test_a_gate_holding_two_edges_updates_nothing_but_one_edge_seen_twice_does()
     assert step.n_edge_matched == 0 and step.n_initialised == 0
 
 
+def test_edgels_take_slots_before_the_corners_up_to_half_the_database():
+    """An edgel where no corner is (a plain face) starts a feature before the corners do, but edge
+    features hold at most half the database that way; the corners take the rest."""
+    m = Mapper(cfg(max_features=10), CAMERA, MOUNT)
+    rng = np.random.default_rng(4)
+    corners = np.column_stack([rng.uniform(20, 300, 10), rng.uniform(20, 460, 10)])  # left half
+    edgels = np.column_stack([rng.uniform(340, 620, 20), rng.uniform(20, 460, 20)])  # right half
+    uv = np.concatenate([corners, edgels])
+    normals = np.concatenate([np.zeros((10, 2)), np.tile([[0.0, 1.0]], (20, 1))])
+    step = m.step_measurements(nav_state([0.0, 0.0, -15.0], 0.0), uv, normals=normals)
+    assert step.n_initialised == 10
+    assert int(np.count_nonzero(m.db.edge & m.db.active)) == 5
+
+
 def test_normals_must_match_the_measurements():
     m = Mapper(cfg(), CAMERA, MOUNT)
     with pytest.raises(ValueError, match="normals"):

@@ -589,11 +589,14 @@ class Mapper:
         if any_edges and len(candidates):
             # an edgel in a bin with no corner and no stored feature in view comes before the
             # corners: a plain face's outline would otherwise never get a slot among the corners
-            # of a textured ground
+            # of a textured ground; but edge features hold at most half the database that way,
+            # or the edges of far, blurred ground take the slots a faint obstacle's corners need
             n_bins = cfg.bins_x * cfg.bins_y
             bins = self._bins(z[candidates])
             seen = np.bincount(self._bins(uv_pred), minlength=n_bins) + np.bincount(self._bins(z[~edgel]), minlength=n_bins)
             first = edgel[candidates] & (seen[bins] == 0)
+            room = max(0, db.capacity // 2 - int(np.count_nonzero(db.edge & db.active)))
+            first &= np.cumsum(first) <= room
             candidates = np.concatenate([candidates[first], candidates[~first]])
         free = db.free_slots()
         replaceable = unmatched[db.confidence[unmatched] < init_index]
