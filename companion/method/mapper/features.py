@@ -633,16 +633,16 @@ _EDGEL_CANDIDATES_PER_EDGEL = 16
 def detect_edgels(
     gray: np.ndarray, corners_uv: np.ndarray, cfg: MapperConfig, border_px: int = 0, valid: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Edgels of a grey frame ``(H, W)`` uint8: points on image edges where the corners leave room
-    (docs/mapper.md, "Edgels").
+    """Edgels of a grey frame ``(H, W)`` uint8: points on image edges in the bins where the corner
+    detector found nothing (docs/mapper.md, "Edgels").
 
     A plain surface (a roof, the top of a wall) has no corners, but its outline against what lies
     behind it is an edge, and an edge measures one coordinate: the distance across it. Pixels on
     Canny's edges (thin, after a ``EDGEL_BLUR_SIGMA_PX`` blur; a step of at least
     ``edgel_min_step_grey``) are taken in the bins where the corner detector found nothing
     (``corners_uv (N, 2)``, raw pixels), strongest gradient first, under the corners' rules: no
-    closer than ``min_distance_px`` to a stronger edgel, at most ``per_bin`` per bin, at most
-    ``max_edgels``. So textured ground, where corners are, gives none; a plain face gives its
+    closer than ``min_distance_px`` to a corner or a stronger edgel, at most ``per_bin`` per bin,
+    at most ``max_edgels``; each is moved across its edge to the sub-pixel peak of the gradient. So textured ground, where corners are, gives none; a plain face gives its
     outline.
 
     ``valid (H, W)``: the usable pixels (non-zero), e.g. :meth:`HarrisDetector.valid_region`, so

@@ -677,9 +677,10 @@ class Mapper:
         * the patches correlate (the corners' appearance check).
 
         A feature whose gate holds two edges (edgels more than ``EDGE_SPREAD_SIGMA`` pixel sigmas
-        apart across the edge) is not matched: an edge's patch does not tell two edges apart. Then mutual nearest by ``nu^2 / (n^T S n)``, as for corners. Also returns the edgels inside
-        some edge feature's gate but not matched (``ambiguous``) and those within the
-        initialisation exclusion (``near``), neither of which starts a new feature."""
+        apart across the edge) is not matched: an edge's patch does not tell two edges apart. Then
+        mutual nearest by ``nu^2 / (n^T S n)``, as for corners. Also returns the edgels inside some
+        edge feature's gate but not matched (``ambiguous``) and those within the initialisation
+        exclusion (``near``), neither of which starts a new feature."""
         cfg = self.cfg
         fe = np.flatnonzero(edge_feature)
         me = np.flatnonzero(edgel)
