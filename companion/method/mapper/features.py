@@ -662,13 +662,13 @@ def detect_edgels(
     # of such bins, padded by the filters' reach), the rest of the frame stays zero
     corners = np.asarray(corners_uv, dtype=float).reshape(-1, 2)
     corners = corners[np.isfinite(corners).all(axis=1)]
-    no_corner = np.bincount(_bin_of(corners, W, H, cfg.bins_x, cfg.bins_y), minlength=cfg.bins_x * cfg.bins_y) == 0
+    no_corner = np.bincount(bin_of(corners, W, H, cfg.bins_x, cfg.bins_y), minlength=cfg.bins_x * cfg.bins_y) == 0
     if not no_corner.any():
         return empty
     smooth = cv2.GaussianBlur(gray, (0, 0), EDGEL_BLUR_SIGMA_PX)
     high = _SOBEL_STEP_GAIN * cfg.edgel_min_step_grey
     edges = np.zeros((H, W), np.uint8)
-    # pixel x is in bin floor(x bins_x / W) (as _bin_of): bin b spans ceil(b W / bins_x) .. ceil((b + 1) W / bins_x) - 1
+    # pixel x is in bin floor(x bins_x / W) (as bin_of): bin b spans ceil(b W / bins_x) .. ceil((b + 1) W / bins_x) - 1
     x_edge = -(-np.arange(cfg.bins_x + 1) * W // cfg.bins_x)
     y_edge = -(-np.arange(cfg.bins_y + 1) * H // cfg.bins_y)
     pad = 3
@@ -740,7 +740,7 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(change[::2].tolist(), change[1::2].tolist()))
 
 
-def _bin_of(xy: np.ndarray, width: int, height: int, bins_x: int, bins_y: int) -> np.ndarray:
+def bin_of(xy: np.ndarray, width: int, height: int, bins_x: int, bins_y: int) -> np.ndarray:
     """Bin number ``(K,)`` (row by row) of points ``xy (K, 2)`` inside the image."""
     bx = np.clip((xy[:, 0] * (bins_x / width)).astype(np.int64), 0, bins_x - 1)
     by = np.clip((xy[:, 1] * (bins_y / height)).astype(np.int64), 0, bins_y - 1)

@@ -356,10 +356,9 @@ class Mapper:
 
     def _bins(self, uv: np.ndarray) -> np.ndarray:
         """The detector's bin (row by row) of each pixel ``uv`` (K, 2), clipped to the image."""
-        cfg, cam = self.cfg, self.camera
-        bx = np.clip((uv[:, 0] * (cfg.bins_x / cam.width)).astype(np.int64), 0, cfg.bins_x - 1)
-        by = np.clip((uv[:, 1] * (cfg.bins_y / cam.height)).astype(np.int64), 0, cfg.bins_y - 1)
-        return by * cfg.bins_x + bx
+        from companion.method.mapper.features import bin_of
+
+        return bin_of(uv, self.camera.width, self.camera.height, self.cfg.bins_x, self.cfg.bins_y)
 
     def _undistorted_normals(self, uv_raw: np.ndarray, normal_raw: np.ndarray) -> np.ndarray:
         """Unit normals (E, 2) in ideal pixels of edges through raw pixels ``uv_raw`` (E, 2) with raw
