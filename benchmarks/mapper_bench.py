@@ -231,6 +231,7 @@ MAPPER_FUNCTIONS = [
     ("match: candidate pairs and their distances (eqs. 11-12)", "candidate_pairs"),
     ("match: gate and mutual nearest", "gate_and_match_pairs"),
     ("update: EKF (eqs. 7-9)", "ekf_update"),
+    ("update: EKF across an edge", "ekf_update_across"),
     ("init: exclusion near stored features", "near_stored_pairs"),
     ("init: depth prior", "prior_ranges"),
 ]
@@ -245,8 +246,9 @@ MODEL_FUNCTIONS = [
     ("bounds: free space and floors", "point"),
     ("bounds: free space and floors", "point_at_sigma"),
 ]
+EDGELS = "edgels: detection (Canny in the bins without a corner)"
 # Called by Mapper.step outside the measurement update ``Mapper._step_checked`` (with the detector).
-OUTSIDE_MEASUREMENTS = ("check_nav",)
+OUTSIDE_MEASUREMENTS = ("check_nav", EDGELS)
 
 
 def section_profile(flight: Flight, n_features: int, frames: int, clock=time.perf_counter) -> dict:
@@ -273,6 +275,7 @@ def section_profile(flight: Flight, n_features: int, frames: int, clock=time.per
         for label, attr in MODEL_FUNCTIONS:
             stack.enter_context(_patched(mapper.model, attr, timer, label, missing))
         stack.enter_context(_patched(Mapper, "_emitted_points", timer, "emit: converged points out", missing))
+        stack.enter_context(_patched(features_module, "detect_edgels", timer, EDGELS, missing))
         stack.enter_context(_patched(HarrisDetector, "__call__", timer, "_detector", missing))
         stack.enter_context(_patched(Mapper, "_step_checked", timer, "_measurements", missing))
         t0 = clock()

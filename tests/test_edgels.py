@@ -163,6 +163,78 @@ def test_no_edgels_when_off_or_on_a_blank_frame():
     assert len(detect_edgels(img, np.zeros((0, 2)), cfg(max_edgels=0), 8)[0]) == 0
 
 
+def whole_frame_edgels(gray, corners, c, border_px, valid):
+    """The detector written the plain way, for its test: the whole frame blurred, Canny on each run
+    of bins without a corner, the Sobel gradient at every edge pixel, a full stable sort."""
+    from companion.method.mapper import features as F
+
+    H, W = gray.shape
+    m = F.effective_margin(c, border_px)
+    no_corner = np.bincount(F.bin_of(corners, W, H, c.bins_x, c.bins_y), minlength=c.bins_x * c.bins_y) == 0
+    smooth = cv2.GaussianBlur(gray, (0, 0), F.EDGEL_BLUR_SIGMA_PX)
+    high = 4.0 * c.edgel_min_step_grey
+    edges = np.zeros((H, W), np.uint8)
+    xe = -(-np.arange(c.bins_x + 1) * W // c.bins_x)
+    ye = -(-np.arange(c.bins_y + 1) * H // c.bins_y)
+    for by in range(c.bins_y):
+        for bx in range(c.bins_x):
+            if not no_corner[by * c.bins_x + bx]:
+                continue
+            b1 = bx + 1  # the run of bins without a corner that starts here (Canny's hysteresis spans it)
+            if bx > 0 and no_corner[by * c.bins_x + bx - 1]:
+                continue
+            while b1 < c.bins_x and no_corner[by * c.bins_x + b1]:
+                b1 += 1
+            y0, y1, x0, x1 = ye[by], ye[by + 1], xe[bx], xe[b1]
+            Y0, Y1, X0, X1 = max(y0 - 3, 0), min(y1 + 3, H), max(x0 - 3, 0), min(x1 + 3, W)
+            crop = cv2.Canny(np.ascontiguousarray(smooth[Y0:Y1, X0:X1]), 0.5 * high, high, L2gradient=True)
+            edges[y0:y1, x0:x1] = crop[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0]
+    edges[:m], edges[H - m:], edges[:, :m], edges[:, W - m:] = 0, 0, 0, 0
+    if valid is not None:
+        edges[valid == 0] = 0
+    iy, ix = np.nonzero(edges)
+    sm = smooth.astype(np.float64)
+    gx = (sm[iy - 1, ix + 1] - sm[iy - 1, ix - 1]) + 2 * (sm[iy, ix + 1] - sm[iy, ix - 1]) + (sm[iy + 1, ix + 1] - sm[iy + 1, ix - 1])
+    gy = (sm[iy + 1, ix - 1] - sm[iy - 1, ix - 1]) + 2 * (sm[iy + 1, ix] - sm[iy - 1, ix]) + (sm[iy + 1, ix + 1] - sm[iy - 1, ix + 1])
+    g = np.column_stack([gx, gy]) / 8.0
+    strength = np.sqrt((g * g).sum(axis=1))
+    top = np.argsort(-strength, kind="stable")[: 16 * c.max_edgels]
+    cell = max(1, int(c.min_distance_px // 2))
+    _, first = np.unique((iy[top] // cell) * (W // cell + 1) + ix[top] // cell, return_index=True)
+    pick = top[np.sort(first)]
+    xy = np.column_stack([ix[pick], iy[pick]]).astype(float)
+    keep = np.flatnonzero(F.suppress_within(np.concatenate([corners, xy]), c.min_distance_px)[len(corners):])
+    keep = keep[F._bin_rank(xy[keep], W, H, c.bins_x, c.bins_y) < c.per_bin][: c.max_edgels]
+    normal = g[pick[keep]] / strength[pick[keep], None]
+    return F._refine_across(smooth, xy[keep], normal), normal, strength[pick[keep]]
+
+
+def test_edgels_of_rendered_frames_are_those_of_the_whole_frame_computation():
+    """Real OpenCV on rendered frames (the default circuit): the detector blurs and differentiates
+    only the bins without a corner, crop by crop, and sorts only the strongest pixels; its edgels
+    are those of the plain whole-frame computation, to the last bit (a crop padded by the blur's
+    reach has the whole frame's pixels)."""
+    from benchmarks.common import render_flight
+    from companion.method.mapper.features import HarrisDetector, as_gray
+
+    flight = render_flight(40)
+    c = dataclasses.replace(flight.cfg.mapper, max_edgels=40)
+    H, W = flight.images[0].shape[:2]
+    detector = HarrisDetector(c, W, H, flight.cfg.camera.border_px)
+    total = 0
+    for image in flight.images[::4]:
+        gray = as_gray(image)
+        corners, _ = detector(gray)
+        corners = corners[: len(corners) // 3]  # fewer corners: more bins without one
+        valid = detector.valid_region(gray)
+        got = detect_edgels(gray, corners, c, flight.cfg.camera.border_px, valid)
+        want = whole_frame_edgels(gray, corners, c, flight.cfg.camera.border_px, valid)
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+        total += len(got[0])
+    assert total > 100
+
+
 # ----------------------------------------------------------------------------------------------
 # The mapper on a straight 3-D edge
 # ----------------------------------------------------------------------------------------------

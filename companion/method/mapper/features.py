@@ -628,6 +628,11 @@ _SOBEL_STEP_GAIN = 4.0
 # Edge pixels looked at in a frame per edgel asked for, strongest first (a strong edge gives two
 # pixels per spacing-wide cell and one edgel per spacing: 16 leave room for several edges).
 _EDGEL_CANDIDATES_PER_EDGEL = 16
+# Reach of the filters around a bin (px): Canny's 3x3 Sobel and its non-maximum suppression
+# (1 px each) and the sub-pixel fit's samples (up to 2.5 px across the edge).
+_EDGEL_PAD_PX = 3
+# Reach of the ``EDGEL_BLUR_SIGMA_PX`` blur (px): OpenCV's 8-bit kernel is 2 round(3 sigma) + 1 wide.
+_BLUR_REACH_PX = 3
 
 
 def detect_edgels(
@@ -659,58 +664,80 @@ def detect_edgels(
     if cfg.max_edgels <= 0 or 2 * m >= min(H, W):
         return empty
     # only bins without a corner take edgels: Canny runs on those bins only (each bin row's runs
-    # of such bins, padded by the filters' reach), the rest of the frame stays zero
+    # of such bins, padded by the filters' reach), the rest of the frame is never filtered
     corners = np.asarray(corners_uv, dtype=float).reshape(-1, 2)
     corners = corners[np.isfinite(corners).all(axis=1)]
     no_corner = np.bincount(bin_of(corners, W, H, cfg.bins_x, cfg.bins_y), minlength=cfg.bins_x * cfg.bins_y) == 0
     if not no_corner.any():
         return empty
-    smooth = cv2.GaussianBlur(gray, (0, 0), EDGEL_BLUR_SIGMA_PX)
-    high = _SOBEL_STEP_GAIN * cfg.edgel_min_step_grey
-    edges = np.zeros((H, W), np.uint8)
-    # pixel x is in bin floor(x bins_x / W) (as bin_of): bin b spans ceil(b W / bins_x) .. ceil((b + 1) W / bins_x) - 1
-    x_edge = -(-np.arange(cfg.bins_x + 1) * W // cfg.bins_x)
-    y_edge = -(-np.arange(cfg.bins_y + 1) * H // cfg.bins_y)
-    pad = 3
-    for by, row in enumerate(no_corner.reshape(cfg.bins_y, cfg.bins_x)):
-        for b0, b1 in _runs(row):
-            y0, y1, x0, x1 = y_edge[by], y_edge[by + 1], x_edge[b0], x_edge[b1]
-            Y0, Y1, X0, X1 = max(y0 - pad, 0), min(y1 + pad, H), max(x0 - pad, 0), min(x1 + pad, W)
-            crop = cv2.Canny(np.ascontiguousarray(smooth[Y0:Y1, X0:X1]), 0.5 * high, high, L2gradient=True)
-            edges[y0:y1, x0:x1] = crop[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0]
-    edges[:m], edges[H - m:], edges[:, :m], edges[:, W - m:] = 0, 0, 0, 0
     if valid is None:  # the corner detector's valid region when given, else the black border's
         depths = black_border_depths(gray)
         valid = None if depths is None else black_border_valid(depths, (H, W), m)
+    high = _SOBEL_STEP_GAIN * cfg.edgel_min_step_grey
+    # the smoothed image is needed only in those bins and within the filters' reach of them: it is
+    # blurred crop by crop (each crop padded by the blur's reach, so its pixels are those of a
+    # whole-frame blur); elsewhere ``smooth`` is never read
+    smooth = np.empty((H, W), np.float32)
+    flats, gxs, gys = [], [], []
+    # pixel x is in bin floor(x bins_x / W) (as bin_of): bin b spans ceil(b W / bins_x) .. ceil((b + 1) W / bins_x) - 1
+    x_edge = -(-np.arange(cfg.bins_x + 1) * W // cfg.bins_x)
+    y_edge = -(-np.arange(cfg.bins_y + 1) * H // cfg.bins_y)
+    lo_x, hi_x, lo_y, hi_y = m, W - m, m, H - m  # the image-edge margin
+    for by, row in enumerate(no_corner.reshape(cfg.bins_y, cfg.bins_x)):
+        for b0, b1 in _runs(row):
+            y0, y1, x0, x1 = y_edge[by], y_edge[by + 1], x_edge[b0], x_edge[b1]
+            Y0, Y1, X0, X1 = max(y0 - _EDGEL_PAD_PX, 0), min(y1 + _EDGEL_PAD_PX, H), max(x0 - _EDGEL_PAD_PX, 0), min(x1 + _EDGEL_PAD_PX, W)
+            BY0, BY1, BX0, BX1 = max(Y0 - _BLUR_REACH_PX, 0), min(Y1 + _BLUR_REACH_PX, H), max(X0 - _BLUR_REACH_PX, 0), min(X1 + _BLUR_REACH_PX, W)
+            blurred = cv2.GaussianBlur(gray[BY0:BY1, BX0:BX1], (0, 0), EDGEL_BLUR_SIGMA_PX)
+            crop = np.ascontiguousarray(blurred[Y0 - BY0:Y1 - BY0, X0 - BX0:X1 - BX0])
+            smooth[Y0:Y1, X0:X1] = crop  # (as float32, for the sub-pixel fit)
+            # Canny's own 3x3 Sobel (replicated border), computed once: the edges and the gradient
+            dx, dy = cv2.spatialGradient(crop, ksize=3, borderType=cv2.BORDER_REPLICATE)
+            edges = cv2.Canny(dx, dy, 0.5 * high, high, L2gradient=True)
+            # the bins themselves, inside the image-edge margin
+            u0, u1, v0, v1 = max(x0, lo_x), min(x1, hi_x), max(y0, lo_y), min(y1, hi_y)
+            if u0 >= u1 or v0 >= v1:
+                continue
+            found = cv2.findNonZero(edges[v0 - Y0:v1 - Y0, u0 - X0:u1 - X0])  # (x, y), row by row
+            if found is None:
+                continue
+            found = found.reshape(-1, 2)
+            at = (found[:, 1] + (v0 - Y0)) * (X1 - X0) + found[:, 0] + (u0 - X0)  # in the crop
+            flats.append((found[:, 1] + v0) * W + found[:, 0] + u0)
+            gxs.append(dx.reshape(-1)[at])
+            gys.append(dy.reshape(-1)[at])
+    if not flats:
+        return empty
+    flat = np.concatenate(flats)
+    gx, gy = np.concatenate(gxs).astype(np.int64), np.concatenate(gys).astype(np.int64)
     if valid is not None:
-        edges[valid == 0] = 0
-    flat = np.flatnonzero(edges)
+        usable = valid.reshape(-1)[flat] != 0
+        flat, gx, gy = flat[usable], gx[usable], gy[usable]
     if len(flat) == 0:
         return empty
+    # the strongest _EDGEL_CANDIDATES_PER_EDGEL x max_edgels pixels (by the squared Sobel gradient,
+    # an integer; ties in frame order, row by row: the key is unique), of those the strongest of
+    # each cell of half the spacing (two in one cell are too close anyway), then strongest first
+    # under the spacing and the per-bin cap
+    key = (gx * gx + gy * gy) * (H * W) + (H * W - 1 - flat)
+    top = strongest(key, min(len(key), _EDGEL_CANDIDATES_PER_EDGEL * cfg.max_edgels))
+    flat, gx, gy = flat[top], gx[top], gy[top]
     iy, ix = np.divmod(flat, W)
-    # the gradient at those pixels only: 3x3 Sobel of the smoothed image, per grey level per pixel
-    sm = smooth.astype(np.float32).reshape(-1)
-    def at(dy, dx):
-        return sm[flat + dy * W + dx]
-    gx = (at(-1, 1) - at(-1, -1)) + 2.0 * (at(0, 1) - at(0, -1)) + (at(1, 1) - at(1, -1))
-    gy = (at(1, -1) - at(-1, -1)) + 2.0 * (at(1, 0) - at(-1, 0)) + (at(1, 1) - at(-1, 1))
-    g = np.column_stack([gx, gy]).astype(np.float64) / (2.0 * _SOBEL_STEP_GAIN)
-    strength = np.sqrt((g * g).sum(axis=1))
-    # the strongest _EDGEL_CANDIDATES_PER_EDGEL x max_edgels pixels, of those the strongest of each
-    # cell of half the spacing (two in one cell are too close anyway), then strongest first under the
-    # spacing and the per-bin cap
-    top = strongest(strength, min(len(strength), _EDGEL_CANDIDATES_PER_EDGEL * cfg.max_edgels))
+    # the gradient in grey levels per pixel (the 3x3 Sobel of a step of D levels is 4 D, over 2 px)
+    gx, gy = gx / (2.0 * _SOBEL_STEP_GAIN), gy / (2.0 * _SOBEL_STEP_GAIN)
+    strength = np.sqrt(gx * gx + gy * gy)
     cell = max(1, int(cfg.min_distance_px // 2))
-    cell_id = (iy[top] // cell) * (W // cell + 1) + ix[top] // cell
-    _, first = np.unique(cell_id, return_index=True)  # (top is strongest first: the first of each cell)
-    pick = top[np.sort(first)]
+    cell_id = (iy // cell) * (W // cell + 1) + ix // cell
+    _, first = np.unique(cell_id, return_index=True)  # (strongest first: the first of each cell)
+    pick = np.sort(first)
     xy = np.column_stack([ix[pick], iy[pick]]).astype(np.float64)
     # the corners first (kept: they are the detector's), then the edgels strongest first
     kept = suppress_within(np.concatenate([corners, xy]), cfg.min_distance_px)[len(corners):]
     keep = np.flatnonzero(kept)
     keep = keep[_bin_rank(xy[keep], W, H, cfg.bins_x, cfg.bins_y) < cfg.per_bin][: cfg.max_edgels]
-    g, strength = g[pick[keep]], strength[pick[keep]]
-    normal = g / strength[:, None]
+    chosen = pick[keep]
+    strength = strength[chosen]
+    normal = np.column_stack([gx[chosen], gy[chosen]]) / strength[:, None]
     return _refine_across(smooth, xy[keep], normal), normal, strength
 
 
@@ -723,7 +750,7 @@ def _refine_across(smooth: np.ndarray, xy: np.ndarray, normal: np.ndarray) -> np
         return xy
     k = np.array([-1.5, -0.5, 0.5, 1.5])
     pts = xy[:, None, :] + k[None, :, None] * normal[:, None, :]  # (E, 4, 2)
-    grey = cv2.remap(smooth.astype(np.float32), pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),
+    grey = cv2.remap(np.asarray(smooth, np.float32), pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),
                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     d = np.diff(grey.astype(np.float64), axis=1)  # derivative at -1, 0, +1 px (E, 3)
     curvature = d[:, 0] - 2.0 * d[:, 1] + d[:, 2]
@@ -734,10 +761,17 @@ def _refine_across(smooth: np.ndarray, xy: np.ndarray, normal: np.ndarray) -> np
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """``[(start, stop), ...]`` of the runs of True in a 1-D bool array."""
-    padded = np.concatenate([[False], mask, [False]]).astype(np.int8)
-    change = np.flatnonzero(np.diff(padded))
-    return list(zip(change[::2].tolist(), change[1::2].tolist()))
+    """``[(start, stop), ...]`` of the runs of True in a short 1-D bool array (a row of bins)."""
+    runs, start = [], None
+    for i, on in enumerate(mask.tolist()):
+        if on and start is None:
+            start = i
+        elif not on and start is not None:
+            runs.append((start, i))
+            start = None
+    if start is not None:
+        runs.append((start, len(mask)))
+    return runs
 
 
 def bin_of(xy: np.ndarray, width: int, height: int, bins_x: int, bins_y: int) -> np.ndarray:

@@ -719,6 +719,7 @@ class Mapper:
             point, meas, Zp = point[like], meas[like], Zp[like]
         p_idx, m_idx, amb = gate_and_match_pairs(point, meas, Zp, self.edge_gate, len(z))
         return _EdgePairs(p_idx, m_idx, amb, near)
+
     def _free_space(self, t_s: float, camera_ned: np.ndarray, y: np.ndarray, P: np.ndarray, R_ref: np.ndarray,
                     origin: np.ndarray, X: np.ndarray) -> FreeSpaceRays:
         """The segments this frame saw through (docs/mapper.md, "Bounds of an unconverged feature"):
