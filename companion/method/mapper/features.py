@@ -647,8 +647,8 @@ def detect_edgels(
     ``edgel_min_step_grey``) are taken in the bins where the corner detector found nothing
     (``corners_uv (N, 2)``, raw pixels), strongest gradient first, under the corners' rules: no
     closer than ``min_distance_px`` to a corner or a stronger edgel, at most ``per_bin`` per bin,
-    at most ``max_edgels``; each is moved across its edge to the sub-pixel peak of the gradient. So textured ground, where corners are, gives none; a plain face gives its
-    outline.
+    at most ``max_edgels``; each is moved across its edge to the sub-pixel peak of the gradient.
+    So textured ground, where corners are, gives none; a plain face gives its outline.
 
     ``valid (H, W)``: the usable pixels (non-zero), e.g. :meth:`HarrisDetector.valid_region`, so
     that a mask's or a black border's outline makes no edgels; by default the image-edge margin and
@@ -686,8 +686,8 @@ def detect_edgels(
     for by, row in enumerate(no_corner.reshape(cfg.bins_y, cfg.bins_x)):
         for b0, b1 in _runs(row):
             y0, y1, x0, x1 = y_edge[by], y_edge[by + 1], x_edge[b0], x_edge[b1]
-            Y0, Y1, X0, X1 = max(y0 - _EDGEL_PAD_PX, 0), min(y1 + _EDGEL_PAD_PX, H), max(x0 - _EDGEL_PAD_PX, 0), min(x1 + _EDGEL_PAD_PX, W)
-            BY0, BY1, BX0, BX1 = max(Y0 - _BLUR_REACH_PX, 0), min(Y1 + _BLUR_REACH_PX, H), max(X0 - _BLUR_REACH_PX, 0), min(X1 + _BLUR_REACH_PX, W)
+            Y0, Y1, X0, X1 = _grown((y0, y1, x0, x1), _EDGEL_PAD_PX, H, W)  # what the filters read
+            BY0, BY1, BX0, BX1 = _grown((Y0, Y1, X0, X1), _BLUR_REACH_PX, H, W)  # what their input's blur reads
             blurred = cv2.GaussianBlur(gray[BY0:BY1, BX0:BX1], (0, 0), EDGEL_BLUR_SIGMA_PX)
             crop = np.ascontiguousarray(blurred[Y0 - BY0:Y1 - BY0, X0 - BX0:X1 - BX0])
             smooth[Y0:Y1, X0:X1] = crop  # (as float32, for the sub-pixel fit)
@@ -739,6 +739,13 @@ def detect_edgels(
     strength = strength[chosen]
     normal = np.column_stack([gx[chosen], gy[chosen]]) / strength[:, None]
     return _refine_across(smooth, xy[keep], normal), normal, strength
+
+
+def _grown(box: tuple[int, int, int, int], by: int, H: int, W: int) -> tuple[int, int, int, int]:
+    """The pixel box ``(y0, y1, x0, x1)`` (half-open) grown by ``by`` px on every side, inside the
+    ``(H, W)`` image."""
+    y0, y1, x0, x1 = box
+    return max(y0 - by, 0), min(y1 + by, H), max(x0 - by, 0), min(x1 + by, W)
 
 
 def _refine_across(smooth: np.ndarray, xy: np.ndarray, normal: np.ndarray) -> np.ndarray:
