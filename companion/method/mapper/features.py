@@ -686,6 +686,10 @@ def detect_edgels(
     for by, row in enumerate(no_corner.reshape(cfg.bins_y, cfg.bins_x)):
         for b0, b1 in _runs(row):
             y0, y1, x0, x1 = y_edge[by], y_edge[by + 1], x_edge[b0], x_edge[b1]
+            # the bins themselves, inside the image-edge margin (bins wholly in it are not filtered)
+            u0, u1, v0, v1 = max(x0, lo_x), min(x1, hi_x), max(y0, lo_y), min(y1, hi_y)
+            if u0 >= u1 or v0 >= v1:
+                continue
             Y0, Y1, X0, X1 = _grown((y0, y1, x0, x1), _EDGEL_PAD_PX, H, W)  # what the filters read
             BY0, BY1, BX0, BX1 = _grown((Y0, Y1, X0, X1), _BLUR_REACH_PX, H, W)  # what their input's blur reads
             blurred = cv2.GaussianBlur(gray[BY0:BY1, BX0:BX1], (0, 0), EDGEL_BLUR_SIGMA_PX)
@@ -694,10 +698,6 @@ def detect_edgels(
             # Canny's own 3x3 Sobel (replicated border), computed once: the edges and the gradient
             dx, dy = cv2.spatialGradient(crop, ksize=3, borderType=cv2.BORDER_REPLICATE)
             edges = cv2.Canny(dx, dy, 0.5 * high, high, L2gradient=True)
-            # the bins themselves, inside the image-edge margin
-            u0, u1, v0, v1 = max(x0, lo_x), min(x1, hi_x), max(y0, lo_y), min(y1, hi_y)
-            if u0 >= u1 or v0 >= v1:
-                continue
             found = cv2.findNonZero(edges[v0 - Y0:v1 - Y0, u0 - X0:u1 - X0])  # (x, y), row by row
             if found is None:
                 continue
