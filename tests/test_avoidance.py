@@ -348,34 +348,95 @@ def test_the_law_keeps_its_clearance_above_the_map_uncertainty():
     assert PullUpLaw(cfg2).command([0, 0.5, -10.5], [5, 0, 0], flat).climb_rate_mps > 0.0
 
 
-def test_a_cell_is_fused_with_the_neighbours_it_agrees_with():
-    """local_surface against its definition: where a cell agrees with the cells of its disc, the
-    information-weighted mean and variance of the disc; where it stands out by more than
-    outlier_sigma (neighbours' mean and both variances), its own height and variance."""
+def _surface_reference(n, e, h, v, i, radius, outlier_sigma, max_step=math.inf):
+    """local_surface's cell i computed from its definition (docs/avoidance.md, "The surface a cell
+    belongs to"), cell by cell: (height, variance, fused)."""
+    disc = ((n - n[i]) ** 2 + (e - e[i]) ** 2 <= radius * radius + 1e-9) & np.isfinite(h)
+    w = 1.0 / v[disc]
+    m_w = np.sum(w * h[disc]) / np.sum(w)
+    q = np.sum(w * (h[disc] - m_w) ** 2)
+    c = np.sum(w) - np.sum(w * w) / np.sum(w)
+    tau2 = max(0.0, (q - (disc.sum() - 1)) / c)
+    others = disc.copy()
+    others[i] = False
+    w_o = 1.0 / (v[others] + tau2)
+    m_o = np.sum(w_o * h[others]) / np.sum(w_o)
+    prior_v = tau2 + 1.0 / np.sum(w_o)
+    if disc.sum() < 3 or (h[i] - m_o) ** 2 > outlier_sigma**2 * (v[i] + prior_v) or abs(h[i] - m_o) > max_step:
+        return h[i], v[i], False
+    v_post = 1.0 / (1.0 / v[i] + 1.0 / prior_v)
+    return v_post * (h[i] / v[i] + m_o / prior_v), v_post, True
+
+
+def test_a_cell_is_estimated_with_the_neighbours_of_its_surface():
+    """local_surface against its definition, cell by cell: the relief tau^2 of the disc from its
+    scatter, the neighbours' mean weighted by 1 / (v + tau^2), the cell's estimate updating that
+    prior; a cell standing out of its neighbours, or with fewer than 3 in its disc, alone."""
     rng = np.random.default_rng(3)
     n, e = np.meshgrid(np.arange(20) + 0.5, np.arange(9) + 0.5, indexing="ij")
     n, e = n.ravel(), e.ravel()
     v = rng.uniform(0.2, 0.8, len(n))
-    h = rng.normal(0.0, 0.05, len(n))
-    mast = int(np.flatnonzero((n == 10.5) & (e == 4.5))[0])
+    h = rng.normal(0.0, np.sqrt(v))  # flat ground, each cell off by its own sigma
+    crowns = n > 14  # tree crowns: 2 m of relief from cell to cell around 15 m
+    h[crowns] = 15.0 + rng.normal(0.0, 2.0, crowns.sum()) + rng.normal(0.0, np.sqrt(v[crowns]))
+    mast = int(np.flatnonzero((n == 6.5) & (e == 4.5))[0])
     h[mast] = 6.0
     h[3] = np.nan  # unmapped
     fused_h, fused_v, fused = local_surface(n, e, h, v, 1.0, 2.0, 2.0)
+    for i in np.flatnonzero(np.isfinite(h)):
+        ref_h, ref_v, ref_fused = _surface_reference(n, e, h, v, i, 2.0, 2.0)
+        assert fused[i] == ref_fused
+        assert fused_h[i] == pytest.approx(ref_h, rel=1e-9, abs=1e-9)
+        assert fused_v[i] == pytest.approx(ref_v, rel=1e-9)
     assert not fused[mast] and fused_h[mast] == h[mast] and fused_v[mast] == v[mast]
     assert not fused[3] and np.isnan(fused_h[3])
-    for i in np.flatnonzero(fused):
-        disc = ((n - n[i]) ** 2 + (e - e[i]) ** 2 <= 4.0 + 1e-9) & np.isfinite(h)
-        others = disc.copy()
-        others[i] = False
-        m_others = np.sum(h[others] / v[others]) / np.sum(1 / v[others])
-        assert (h[i] - m_others) ** 2 <= 4.0 * (v[i] + 1 / np.sum(1 / v[others]))
-        assert fused_h[i] == pytest.approx(np.sum(h[disc] / v[disc]) / np.sum(1 / v[disc]))
-        assert fused_v[i] == pytest.approx(1 / np.sum(1 / v[disc]))
-    # A flat cell beside the mast that agrees with its disc takes a mean the mast raises: higher.
-    near = ((n - 10.5) ** 2 + (e - 4.5) ** 2 <= 4.0) & (np.arange(len(n)) != mast) & fused
-    assert near.any() and np.all(fused_h[near] > h[near])
-    assert fused.sum() > 0.6 * len(n)
+    # Flat ground whose disc holds neither the mast nor a crown: about the information of its disc
+    # (13 cells; some discs see a little relief in the noise).
+    flat = fused & (n < 12.5) & (np.hypot(n - 6.5, e - 4.5) > 2.5) & (e > 1.5) & (e < 7.5)
+    assert flat.sum() > 20
+    assert np.median(v[flat] / fused_v[flat]) > 6.0
+    # Inside the crowns the relief is the crown's own: a cell keeps most of its height above the
+    # disc's mean (a crown fused with its neighbours would lose the top the law must clear).
+    inner = crowns & (n > 16) & (e > 1.5) & (e < 7.5)
+    top = inner & (h > 17.0)
+    assert top.any() and np.all(fused_h[top] >= h[top] - 0.25 * (h[top] - 15.0))
     assert local_surface(n, e, h, v, 1.0, 0.0, 2.0)[2].sum() == 0  # radius 0: each cell alone
+
+
+def test_no_cell_is_fused_across_a_step_larger_than_the_limit():
+    """An obstacle's first point is uncertain: 2.5 m +- 1.5 m among flat cells known to +-0.5 m
+    agrees with them by the sigmas (2.5 < 2 sqrt(2.25 + ...)) and is fused down without a limit;
+    with max_step_m = 1.5 it keeps its own height, and every cell matches the definition."""
+    n, e = np.meshgrid(np.arange(9) + 0.5, np.arange(9) + 0.5, indexing="ij")
+    n, e = n.ravel(), e.ravel()
+    h = np.random.default_rng(7).normal(0.0, 0.5, len(n))
+    v = np.full(len(n), 0.25)
+    first = int(np.flatnonzero((n == 4.5) & (e == 4.5))[0])
+    h[first], v[first] = 2.5, 2.25
+    free_h, _, free = local_surface(n, e, h, v, 1.0, 2.0, 2.0)
+    assert free[first] and free_h[first] < 1.0
+    capped_h, capped_v, capped = local_surface(n, e, h, v, 1.0, 2.0, 2.0, max_step_m=1.5)
+    assert not capped[first] and capped_h[first] == 2.5 and capped_v[first] == 2.25
+    for i in range(len(n)):
+        ref_h, ref_v, ref_fused = _surface_reference(n, e, h, v, i, 2.0, 2.0, 1.5)
+        assert capped[i] == ref_fused
+        assert capped_h[i] == pytest.approx(ref_h, rel=1e-9, abs=1e-9)
+        assert capped_v[i] == pytest.approx(ref_v, rel=1e-9)
+
+
+def test_the_relief_is_zero_where_the_scatter_is_the_sigmas_and_the_fusion_is_the_disc_mean():
+    """With every cell at one height the relief is 0 and a cell's estimate is the information-
+    weighted mean of its disc, variance 1 / sum 1 / v (the fixed-effect case)."""
+    n, e = np.meshgrid(np.arange(9) + 0.5, np.arange(9) + 0.5, indexing="ij")
+    n, e = n.ravel(), e.ravel()
+    v = np.random.default_rng(1).uniform(0.2, 0.8, len(n))
+    h = np.full(len(n), 2.0)
+    fused_h, fused_v, fused = local_surface(n, e, h, v, 1.0, 2.0, 2.0)
+    assert fused.all()
+    for i in range(len(n)):
+        disc = (n - n[i]) ** 2 + (e - e[i]) ** 2 <= 4.0 + 1e-9
+        assert fused_h[i] == pytest.approx(2.0)
+        assert fused_v[i] == pytest.approx(1.0 / np.sum(1.0 / v[disc]))
 
 
 def test_flat_ground_known_to_half_a_metre_costs_less_margin_fused_and_a_small_post_keeps_its_own():

@@ -8,13 +8,15 @@ command is the largest of these bounds and of the nominal-altitude command, clip
 vehicle's climb and descent limits. Signs: altitude ``h`` and climb rate ``w`` are up-positive.
 
 The height the law takes for each cell (:func:`law_heights`) reads the map's evidence as such: a
-risk quantile of the cell's height estimate, never above the free space a line of sight proved
-above the cell, never below the least a feature not yet converged says the terrain there reaches.
+risk quantile of the height of the surface the cell belongs to (:func:`local_surface`), never
+above the free space a line of sight proved above the cell, never below the least a feature not
+yet converged says the terrain there reaches.
 
 Functions in derivation order: :func:`time_to_go` (Delta t_i), :func:`height_restriction`
 (eq. 18), :func:`minimum_climb_rate` (eqs. 19-20 completed with the push-over and the climb-rate
 limit), :func:`nominal_climb_rate` (return to the nominal altitude), :func:`margin_height` (a cell
-as high as its estimate plus k sigma), :func:`fill_unknown`, :func:`law_heights`, the speed limit for a late obstacle
+as high as its estimate plus k sigma), :func:`fill_unknown`, :func:`local_surface` (a cell estimated
+with the surface it belongs to), :func:`law_heights`, the speed limit for a late obstacle
 (:func:`climb_time`, :func:`brake_speed`, :func:`climb_speed_limit`), the speed limit for what the
 camera cannot see yet (:func:`view_distance`, :func:`view_speed_limit`), then :class:`PullUpLaw`.
 """
@@ -209,23 +211,39 @@ def fill_unknown(along_m: np.ndarray, height_m: np.ndarray, fill_m: float, cell_
 
 
 def local_surface(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray, variance: np.ndarray,
-                  cell_m: float, radius_m: float, outlier_sigma: float, min_cells: int = 3
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each mapped cell's height fused with the mapped cells within ``radius_m`` around it, where it
-    agrees with them (docs/avoidance.md, "The surface a cell belongs to").
+                  cell_m: float, radius_m: float, outlier_sigma: float, min_cells: int = 3,
+                  max_step_m: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each mapped cell's height estimated together with the mapped cells within ``radius_m``
+    around it, as far as they are one surface (docs/avoidance.md, "The surface a cell belongs to").
 
     A cell with one point knows its height to its point's sigma (0.8 m at convergence); its
     neighbours on the same surface know theirs as well, and the law, which takes the highest of a
-    thousand cells ahead, would otherwise fly over the noisiest of them. The information-weighted
-    mean of the ``n`` cells of the disc, ``m = sum(h_j / v_j) / sum(1 / v_j)``, has the variance
-    ``V = 1 / sum(1 / v_j)``. It stands for the cell where the cell agrees with its neighbours:
-    with ``m_-``, ``V_-`` the same over the neighbours alone, ``|h - m_-| <= outlier_sigma
-    sqrt(v + V_-)``. A cell that stands out (a mast, a wall's top, the first point of an obstacle,
-    or the ground beside them) keeps its own height and variance, as without fusion. At least
-    ``min_cells`` mapped cells (the cell included) must be in the disc.
+    thousand cells ahead, would otherwise fly over the noisiest of them. But a surface is not
+    flat: tree crowns, rubble, a roof's edge differ from cell to cell by more than their sigmas say.
+    The disc ``D`` of ``n`` mapped cells (the cell included) is modelled as ``h_j = m + r_j + e_j``:
+    a common height ``m``, the cell's own relief ``r_j ~ N(0, tau^2)`` and its estimate's error
+    ``e_j ~ N(0, v_j)``. The relief is estimated from the disc's scatter (DerSimonian-Laird):
+    with ``w_j = 1 / v_j``, ``Q = sum w_j (h_j - m_w)^2`` (``m_w`` their weighted mean) and
+    ``C = sum w_j - sum w_j^2 / sum w_j``::
+
+        tau^2 = max(0, (Q - (n - 1)) / C)
+
+    The neighbours alone (``j != i``) then give ``m_-`` = their mean weighted by
+    ``1 / (v_j + tau^2)`` with the variance ``V_- = 1 / sum 1 / (v_j + tau^2)``, a prior on the
+    cell of mean ``m_-`` and variance ``tau^2 + V_-``, which the cell's own estimate updates::
+
+        1 / v' = 1 / v_i + 1 / (tau^2 + V_-),    h' = v' (h_i / v_i + m_- / (tau^2 + V_-))
+
+    Where the scatter is what the sigmas explain (``tau = 0``) that is the information-weighted mean
+    of the disc, variance ``1 / sum w_j``; where the relief dominates (``tau^2 >> v_i``) the cell
+    keeps about its own ``h_i``, ``v_i``. A cell that stands out of its neighbours,
+    ``|h_i - m_-| > outlier_sigma sqrt(v_i + tau^2 + V_-)`` (a mast, a wall's top, an obstacle's
+    first point), keeps its own height and variance; so does a cell more than ``max_step_m`` from
+    ``m_-`` however uncertain it is (the first point of an obstacle is uncertain too), and a cell
+    with fewer than ``min_cells`` mapped cells in its disc.
 
     north_m, east_m: (K,) cell centres on the grid of ``cell_m``; height_m (K,) NaN unmapped;
-    variance (K,). Returns (height, variance, fused) (K,): the fused cells' ``m`` and ``V``, the
+    variance (K,). Returns (height, variance, fused) (K,): the fused cells' ``h'`` and ``v'``, the
     others' own values, and which were fused."""
     h = np.asarray(height_m, dtype=np.float64)
     v = np.asarray(variance, dtype=np.float64)
@@ -238,39 +256,57 @@ def local_surface(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray,
     i = np.rint((north_m - north_m.min()) / cell_m).astype(np.int64) + r
     j = np.rint((east_m - east_m.min()) / cell_m).astype(np.int64) + r
     rows, cols = int(i.max()) + r + 1, int(j.max()) + r + 1
-    w = np.zeros((rows, cols))
-    wh = np.zeros((rows, cols))
-    n = np.zeros((rows, cols))
-    w[i[known], j[known]] = 1.0 / v[known]
-    wh[i[known], j[known]] = h[known] / v[known]
-    n[i[known], j[known]] = 1.0
-    s0, s1, sn = np.zeros_like(w), np.zeros_like(w), np.zeros_like(w)
-    inner = (slice(r, rows - r), slice(r, cols - r))
-    for di in range(-r, r + 1):
-        for dj in range(-r, r + 1):
-            if di * di + dj * dj > r * r:
-                continue
-            src = (slice(r + di, rows - r + di), slice(r + dj, cols - r + dj))
-            s0[inner] += w[src]
-            s1[inner] += wh[src]
-            sn[inner] += n[src]
     ik, jk = i[known], j[known]
     hk, vk = h[known], v[known]
-    a0, a1, an = s0[ik, jk], s1[ik, jk], sn[ik, jk]
-    b0 = a0 - 1.0 / vk  # the neighbours alone
+    # The corridor on a grid padded by r (unmapped cells: no weight). A disc's sum is the sum of the
+    # grid shifted by each of the disc's offsets in turn: views, no gathers.
+    grid_h = np.zeros((rows, cols))
+    grid_v = np.full((rows, cols), np.inf)
+    grid_h[ik, jk] = hk
+    grid_v[ik, jk] = vk
+    w = 1.0 / grid_v
+    wh = w * grid_h
+    # The disc's fixed-effect sums, for the relief: n, sum w, sum w h, sum w h^2, sum w^2.
+    terms = np.stack([np.isfinite(grid_v), w, wh, wh * grid_h, w * w]).astype(np.float64)
+    offsets = [(di, dj) for di in range(-r, r + 1) for dj in range(-r, r + 1) if di * di + dj * dj <= r * r]
+    shifted = [(slice(r + di, rows - r + di), slice(r + dj, cols - r + dj)) for di, dj in offsets]
+    sums = np.zeros((len(terms), rows - 2 * r, cols - 2 * r))
+    for src in shifted:
+        sums += terms[(slice(None),) + src]
+    s_n, s_w, s_wh, s_whh, s_ww = sums[:, ik - r, jk - r]
+    q = np.maximum(s_whh - s_wh * s_wh / s_w, 0.0)
+    c = s_w - s_ww / s_w
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean_others = (a1 - hk / vk) / b0
-        agrees = (an >= min_cells) & (b0 > 0) & ((hk - mean_others) ** 2 <= outlier_sigma**2 * (vk + 1.0 / b0))
+        tau2 = np.where(c > 0, np.maximum((q - (s_n - 1.0)) / c, 0.0), 0.0)
+    # The neighbours alone, weighted by 1 / (v_j + tau^2) of the cell's own disc.
+    grid_tau2 = np.zeros((rows - 2 * r, cols - 2 * r))
+    grid_tau2[ik - r, jk - r] = tau2
+    a0g, a1g = np.zeros_like(grid_tau2), np.zeros_like(grid_tau2)
+    for (di, dj), src in zip(offsets, shifted):
+        if di == 0 and dj == 0:
+            continue
+        wn = 1.0 / (grid_v[src] + grid_tau2)
+        a0g += wn
+        a1g += wn * grid_h[src]
+    a0, a1 = a0g[ik - r, jk - r], a1g[ik - r, jk - r]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m_others = a1 / a0
+        prior_v = tau2 + 1.0 / a0
+        agrees = (s_n >= min_cells) & (a0 > 0) & ((hk - m_others) ** 2 <= outlier_sigma**2 * (vk + prior_v))
+        agrees &= np.abs(hk - m_others) <= max_step_m
+        v_post = 1.0 / (1.0 / vk + 1.0 / prior_v)
+        h_post = v_post * (hk / vk + m_others / prior_v)
     out_h, out_v = h.copy(), v.copy()
     idx = np.flatnonzero(known)[agrees]
-    out_h[idx] = a1[agrees] / a0[agrees]
-    out_v[idx] = 1.0 / a0[agrees]
+    out_h[idx] = h_post[agrees]
+    out_v[idx] = v_post[agrees]
     fused[idx] = True
     return out_h, out_v, fused
 
 
 def law_heights(along_m: np.ndarray, corridor: Corridor, k_sigma: float, fill_m: float, cell_m: float,
-                hover: bool, local_radius_m: float = 0.0, local_outlier_sigma: float = 2.0) -> np.ndarray:
+                hover: bool, local_radius_m: float = 0.0, local_outlier_sigma: float = 2.0,
+                local_max_step_m: float = math.inf) -> np.ndarray:
     """The height the law keeps its clearance above, per corridor cell (K,), sorted along track
     (docs/avoidance.md, "What a cell may hold"):
 
@@ -282,6 +318,9 @@ def law_heights(along_m: np.ndarray, corridor: Corridor, k_sigma: float, fill_m:
       (:func:`fill_unknown`), never above the cell's own ceiling; NaN where nothing mapped is near;
     * every cell: at least its floor (the least the terrain reaches, from features not yet
       converged): ``max(., floor)``; an unmapped cell with a floor and nothing near counts at it.
+
+    With ``local_radius_m > 0`` a mapped cell's ``h`` and variance are first those of the surface
+    it belongs to (:func:`local_surface`, never across a step of more than ``local_max_step_m``).
     """
     h = corridor.height_m
     var = corridor.height_variance if corridor.height_variance is not None else corridor.variance
@@ -291,7 +330,7 @@ def law_heights(along_m: np.ndarray, corridor: Corridor, k_sigma: float, fill_m:
     known = (corridor.count > 0) & np.isfinite(h)
     if local_radius_m > 0:
         h, var, _ = local_surface(corridor.north_m, corridor.east_m, np.where(known, h, np.nan), var, cell_m,
-                                  local_radius_m, local_outlier_sigma)
+                                  local_radius_m, local_outlier_sigma, max_step_m=local_max_step_m)
     with np.errstate(invalid="ignore"):
         taken = np.where(known, np.fmax(h, np.fmin(margin_height(h, var, k_sigma), ceiling)), np.nan)
         taken = fill_unknown(along_m, taken, fill_m, cell_m, hover)
@@ -439,7 +478,8 @@ class PullUpLaw:
             along = corr.along_m - fill
             zone = (along >= 0.0) | (along * along + corr.cross_m * corr.cross_m <= radius * radius)
         heights = law_heights(along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover,
-                              cfg.local_radius_m, cfg.local_outlier_sigma)[zone]
+                              cfg.local_radius_m, cfg.local_outlier_sigma,
+                              cfg.speed_limit_shortfall * cfg.clearance_m)[zone]
         along, cross = along[zone], corr.cross_m[zone]
         north, east = corr.north_m[zone], corr.east_m[zone]
         considered = np.isfinite(heights)
