@@ -267,7 +267,7 @@ def local_surface(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray,
     w = 1.0 / grid_v
     wh = w * grid_h
     # The disc's fixed-effect sums, for the relief: n, sum w, sum w h, sum w h^2, sum w^2.
-    terms = np.stack([np.isfinite(grid_v), w, wh, wh * grid_h, w * w]).astype(np.float64)
+    terms = np.stack([np.isfinite(grid_v), w, wh, wh * grid_h, w * w])  # float64: the bools promote
     offsets = [(di, dj) for di in range(-r, r + 1) for dj in range(-r, r + 1) if di * di + dj * dj <= r * r]
     shifted = [(slice(r + di, rows - r + di), slice(r + dj, cols - r + dj)) for di, dj in offsets]
     sums = np.zeros((len(terms), rows - 2 * r, cols - 2 * r))
