@@ -256,39 +256,32 @@ def local_surface(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray,
     i = np.rint((north_m - north_m.min()) / cell_m).astype(np.int64) + r
     j = np.rint((east_m - east_m.min()) / cell_m).astype(np.int64) + r
     rows, cols = int(i.max()) + r + 1, int(j.max()) + r + 1
-    ik, jk = i[known], j[known]
     hk, vk = h[known], v[known]
-    # The corridor on a grid padded by r (unmapped cells: no weight). A disc's sum is the sum of the
-    # grid shifted by each of the disc's offsets in turn: views, no gathers.
-    grid_h = np.zeros((rows, cols))
-    grid_v = np.full((rows, cols), np.inf)
-    grid_h[ik, jk] = hk
-    grid_v[ik, jk] = vk
-    w = 1.0 / grid_v
-    wh = w * grid_h
+    # Each mapped cell's disc as flat indices into the corridor's bounding box padded by r, then as
+    # rows of the mapped cells' tables: only the mapped cells are read (a diagonal corridor's
+    # bounding box is mostly empty), and a disc's sum adds its offsets one after the other.
+    at = i[known] * cols + j[known]
+    shifts = np.array([di * cols + dj for di in range(-r, r + 1) for dj in range(-r, r + 1) if di * di + dj * dj <= r * r])
+    discs = at[None, :] + shifts[:, None]  # (offsets, mapped cells)
+    w_k = 1.0 / vk
+    wh_k = w_k * hk
+    # Row m of the tables is mapped cell m; their last row, of no weight, stands for unmapped cells.
+    row = np.full(rows * cols, len(at))
+    row[at] = np.arange(len(at))
+    disc_rows = row.take(discs)
     # The disc's fixed-effect sums, for the relief: n, sum w, sum w h, sum w h^2, sum w^2.
-    terms = np.stack([np.isfinite(grid_v), w, wh, wh * grid_h, w * w])  # float64: the bools promote
-    offsets = [(di, dj) for di in range(-r, r + 1) for dj in range(-r, r + 1) if di * di + dj * dj <= r * r]
-    shifted = [(slice(r + di, rows - r + di), slice(r + dj, cols - r + dj)) for di, dj in offsets]
-    sums = np.zeros((len(terms), rows - 2 * r, cols - 2 * r))
-    for src in shifted:
-        sums += terms[(slice(None),) + src]
-    s_n, s_w, s_wh, s_whh, s_ww = sums[:, ik - r, jk - r]
+    terms = np.zeros((len(at) + 1, 5))
+    terms[:-1] = np.stack([np.ones_like(hk), w_k, wh_k, wh_k * hk, w_k * w_k], axis=1)
+    s_n, s_w, s_wh, s_whh, s_ww = terms.take(disc_rows, axis=0).sum(axis=0).T
     q = np.maximum(s_whh - s_wh * s_wh / s_w, 0.0)
     c = s_w - s_ww / s_w
     with np.errstate(invalid="ignore", divide="ignore"):
         tau2 = np.where(c > 0, np.maximum((q - (s_n - 1.0)) / c, 0.0), 0.0)
     # The neighbours alone, weighted by 1 / (v_j + tau^2) of the cell's own disc.
-    grid_tau2 = np.zeros((rows - 2 * r, cols - 2 * r))
-    grid_tau2[ik - r, jk - r] = tau2
-    a0g, a1g = np.zeros_like(grid_tau2), np.zeros_like(grid_tau2)
-    for (di, dj), src in zip(offsets, shifted):
-        if di == 0 and dj == 0:
-            continue
-        wn = 1.0 / (grid_v[src] + grid_tau2)
-        a0g += wn
-        a1g += wn * grid_h[src]
-    a0, a1 = a0g[ik - r, jk - r], a1g[ik - r, jk - r]
+    hv = np.stack([np.append(hk, 0.0), np.append(vk, np.inf)], axis=1)
+    others = hv.take(disc_rows[shifts != 0], axis=0)  # (offsets but the centre, mapped cells, 2): h, v
+    wn = 1.0 / (others[..., 1] + tau2)
+    a0, a1 = wn.sum(axis=0), (wn * others[..., 0]).sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         m_others = a1 / a0
         prior_v = tau2 + 1.0 / a0
