@@ -403,6 +403,32 @@ def test_a_cell_is_estimated_with_the_neighbours_of_its_surface():
     assert local_surface(n, e, h, v, 1.0, 0.0, 2.0)[2].sum() == 0  # radius 0: each cell alone
 
 
+def test_the_surface_of_a_diagonal_corridor_is_its_definition():
+    """local_surface on the corridor the law reads, 37 degrees off north over a map with holes,
+    relief and a post, every cell against the definition: a diagonal corridor's cells are a
+    sparse part of their bounding box, and each disc must read exactly the corridor's own cells."""
+    rng = np.random.default_rng(5)
+    grid = TerrainGrid(gate_min_count=10**6)
+    n, e = np.meshgrid(np.arange(-10, 90) + 0.5, np.arange(-10, 80) + 0.5, indexing="ij")
+    keep = rng.random(n.size) < 0.6
+    n, e = n.ravel()[keep], e.ravel()[keep]
+    height = rng.normal(0.0, 0.5, n.size) + np.where(n + e > 90.0, 4.0 + rng.normal(0.0, 1.5, n.size), 0.0)
+    height[np.argmin(np.hypot(n - 30.5, e - 22.5))] = 7.0
+    sd = rng.uniform(0.3, 0.9, n.size)
+    grid.insert(TerrainPoints(0.0, np.c_[n, e, -height], np.array([np.diag([1e-4, 1e-4, s * s]) for s in sd])))
+    heading = math.radians(37.0)
+    corr = grid.corridor((0.0, 0.0), (math.cos(heading), math.sin(heading)), 100.0, 5.7)
+    h = np.where(corr.count > 0, corr.height_m, np.nan)
+    fused_h, fused_v, fused = local_surface(corr.north_m, corr.east_m, h, corr.height_variance, 1.0, 2.0, 2.0,
+                                            max_step_m=1.5)
+    assert np.isfinite(h).sum() > 500 and 0 < fused.sum() < np.isfinite(h).sum()
+    for i in np.flatnonzero(np.isfinite(h)):
+        ref_h, ref_v, ref_fused = _surface_reference(corr.north_m, corr.east_m, h, corr.height_variance, i, 2.0, 2.0, 1.5)
+        assert fused[i] == ref_fused
+        assert fused_h[i] == pytest.approx(ref_h, rel=1e-9, abs=1e-9)
+        assert fused_v[i] == pytest.approx(ref_v, rel=1e-9)
+
+
 def test_no_cell_is_fused_across_a_step_larger_than_the_limit():
     """An obstacle's first point is uncertain: 2.5 m +- 1.5 m among flat cells known to +-0.5 m
     agrees with them by the sigmas (2.5 < 2 sqrt(2.25 + ...)) and is fused down without a limit;
