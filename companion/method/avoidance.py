@@ -278,7 +278,8 @@ def local_surface(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray,
     with np.errstate(invalid="ignore", divide="ignore"):
         tau2 = np.where(c > 0, np.maximum((q - (s_n - 1.0)) / c, 0.0), 0.0)
     # The neighbours alone, weighted by 1 / (v_j + tau^2) of the cell's own disc.
-    hv = np.stack([np.append(hk, 0.0), np.append(vk, np.inf)], axis=1)
+    hv = np.empty((len(at) + 1, 2))
+    hv[:-1, 0], hv[:-1, 1], hv[-1] = hk, vk, (0.0, np.inf)
     others = hv.take(disc_rows[shifts != 0], axis=0)  # (offsets but the centre, mapped cells, 2): h, v
     wn = 1.0 / (others[..., 1] + tau2)
     a0, a1 = wn.sum(axis=0), (wn * others[..., 0]).sum(axis=0)

@@ -271,6 +271,8 @@ class TerrainGrid:
             layers += [(self._c, np.inf, np.float64), (self._f, -np.inf, np.float64), (self._w, 0.0, np.float64)]
         if not self._n_tiles:
             return tuple(np.full(len(ci), empty, dtype=dt) for _, empty, dt in layers)
+        if have.all():  # every cell in a tile (a query over mapped ground): no stand-in values
+            return tuple(layer.reshape(-1)[flat].astype(dt) for layer, _, dt in layers)
         return tuple(np.where(have, layer.reshape(-1)[flat], empty).astype(dt) for layer, empty, dt in layers)
 
     # ----------------------------------------------------------------------------------- fusion
