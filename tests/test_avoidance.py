@@ -272,6 +272,25 @@ def test_unmapped_cells_are_not_ground_at_zero():
     assert c.unknown_cells_ahead > 0
 
 
+def test_the_law_names_the_mapped_cell_an_unmapped_limiting_cell_stands_in_for():
+    """A 6 m cell at 30.5 m in flat ground whose rows 26-29 m are unmapped: the unmapped cells stand
+    in at 6 m and, nearer, limit the climb; the command names the 6 m cell as their source. Over
+    the mapped cell itself, or a mapped map, there is no source."""
+    grid = mapped([[30.5, 1.5, 6.0]])
+    holed = TerrainGrid(gate_min_count=10**6)
+    for key in grid.keys():
+        t = grid.tile(key)
+        if key[0] == 0:
+            t.height[26:30, :], t.variance[26:30, :], t.count[26:30, :] = np.nan, np.inf, 0
+        holed.put_tile(t)
+    c = PullUpLaw(CFG).command([10, 0.5, -15.0], [5, 0, 0], holed)
+    assert c.engaged and 26.0 <= c.limiting_cell_ne[0] < 30.0
+    assert np.isnan(holed.height_at(*c.limiting_cell_ne)[0])
+    assert c.limiting_source_ne == (30.5, 1.5)
+    full = PullUpLaw(CFG).command([10, 0.5, -15.0], [5, 0, 0], grid)
+    assert full.engaged and full.limiting_cell_ne == (30.5, 1.5) and full.limiting_source_ne is None
+
+
 def test_bad_state_is_refused():
     with pytest.raises(ValueError, match="finite"):
         PullUpLaw(CFG).command([0, np.nan, -10.0], [5, 0, 0], TerrainGrid())

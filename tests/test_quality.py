@@ -443,3 +443,23 @@ def test_the_shared_first_pass_flies_a_scout_then_the_lap_alone_and_with_its_map
     assert block["shared"] >= block["alone"] - 0.1  # the scout's map never makes the pass worse here
     md = (out / "shared.md").read_text()
     assert f"| {row['scenario']} | 1 | block | {block['alone']:.2f} | {block['shared']:.2f} |" in md
+
+
+def test_a_climb_for_an_unmapped_cell_is_judged_by_the_cell_it_stands_in_for():
+    """false_climbs: an episode limited by an unmapped cell (no mapped height of its own) counts
+    when the mapped cell it stands in for lies on flat ground more than 2 m high; without the
+    stand-in's source it cannot be judged and is not counted; a source over the block is no false
+    cell."""
+    def flat_or_block(n, e):
+        return np.where((np.asarray(n) >= 90.0) & (np.asarray(n) <= 110.0), 9.0, 0.0)
+
+    engaged = np.array([False, True, True, False, True, True, False])
+    climb = np.where(engaged, 1.0, 0.0)
+    lim = np.tile([50.5, 0.5], (7, 1))
+    unmapped = np.full(7, np.nan)
+    source = np.array([[np.nan, np.nan], [52.5, 1.5], [52.5, 1.5], [np.nan, np.nan], [100.5, 0.5], [100.5, 0.5],
+                       [np.nan, np.nan]])
+    source_h = np.array([np.nan, 3.2, 3.2, np.nan, 9.1, 9.1, np.nan])
+    assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0) == 0
+    assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0, source, source_h) == 1
+

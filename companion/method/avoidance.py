@@ -129,6 +129,9 @@ class AvoidanceCommand:
         (:func:`view_distance`; inf: the view reaches the horizon, or unknown).
     view_speed_limit_mps: the speed at which terrain first seen ``view_distance_m`` ahead can still
         be stopped for (:func:`view_speed_limit`; inf: none, off, or hovering).
+    limiting_source_ne: when the limiting cell is unmapped, the centre (north, east) of the mapped
+        cell it stands in for (docs/avoidance.md, "Unmapped cells"); None when the limiting cell is
+        mapped, or counts at its own floor or ceiling.
     """
 
     climb_rate_mps: float
@@ -143,6 +146,23 @@ class AvoidanceCommand:
     speed_limit_mps: float = math.inf
     view_distance_m: float = math.inf
     view_speed_limit_mps: float = math.inf
+    limiting_source_ne: tuple[float, float] | None = None
+
+
+def stand_in_source(along_m: np.ndarray, height_m: np.ndarray, mapped: np.ndarray, i: int, fill_m: float,
+                    cell_m: float, hover: bool) -> int:
+    """The mapped cell an unmapped cell ``i`` stands in for (:func:`fill_unknown`): the index of the
+    highest of ``height_m`` among the ``mapped`` cells within ``fill_m`` along track of it (by the
+    same cells of ``cell_m`` along track), or among all of them at hover; -1 when there is none.
+    along_m, height_m, mapped: (K,) sorted along track."""
+    candidates = mapped.copy()
+    if not hover:
+        bins = np.floor((along_m - along_m[0]) / cell_m).astype(np.int64)
+        candidates &= np.abs(bins - bins[i]) <= int(math.ceil(fill_m / cell_m))
+    if not candidates.any():
+        return -1
+    idx = np.flatnonzero(candidates)
+    return int(idx[np.argmax(height_m[idx])])
 
 
 def ground_below(grid: TerrainGrid, position_ne: np.ndarray, radius_m: float,
@@ -471,9 +491,11 @@ class PullUpLaw:
             corr = grid.corridor(p[:2] - fill * direction, direction, cfg.lookahead_m + fill, radius)
             along = corr.along_m - fill
             zone = (along >= 0.0) | (along * along + corr.cross_m * corr.cross_m <= radius * radius)
-        heights = law_heights(along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover,
-                              cfg.local_radius_m, cfg.local_outlier_sigma,
-                              cfg.speed_limit_shortfall * cfg.clearance_m)[zone]
+        all_heights = law_heights(along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover,
+                                  cfg.local_radius_m, cfg.local_outlier_sigma, cfg.speed_limit_shortfall * cfg.clearance_m)
+        in_zone = np.flatnonzero(zone)
+        heights = all_heights[in_zone]
+        all_along = along
         along, cross = along[zone], corr.cross_m[zone]
         north, east = corr.north_m[zone], corr.east_m[zone]
         considered = np.isfinite(heights)
@@ -514,6 +536,14 @@ class PullUpLaw:
             return AvoidanceCommand(cmd, w_nom, None, math.nan, math.nan, math.nan, False, unknown_left, holding, limit,
                                     view_m, view_limit)
         h_i = float(heights[idx])
+        source = None
+        j = int(in_zone[idx])
+        mapped = (corr.count > 0) & np.isfinite(corr.height_m)
+        own_bound = (corr.floor_m is not None and h_i == corr.floor_m[j]) or (corr.ceiling_m is not None and h_i == corr.ceiling_m[j])
+        if not mapped[j] and not own_bound:
+            src = stand_in_source(all_along, all_heights, mapped, j, fill, grid.cell_size_m, hover)
+            if src >= 0:
+                source = (float(corr.north_m[src]), float(corr.east_m[src]))
         return AvoidanceCommand(
             climb_rate_mps=cmd,
             nominal_climb_mps=w_nom,
@@ -527,6 +557,7 @@ class PullUpLaw:
             speed_limit_mps=limit,
             view_distance_m=view_m,
             view_speed_limit_mps=view_limit,
+            limiting_source_ne=source,
         )
 
 

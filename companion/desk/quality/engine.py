@@ -61,7 +61,9 @@ class FlightRecord:
     control step after take-off; nav_alt_m (T,): the estimate the law used; per step the law's
     output: climb_mps (T,) commanded, nominal_climb_mps (T,), engaged (T,) bool, limiting_ne_m (T, 2)
     (NaN when none), limiting_law_height_m (T,) (the cell as the law took it: estimate + margin),
-    limiting_map_height_m (T,) (the cell's mapped estimate), lap (T,) the guidance's completed laps.
+    limiting_map_height_m (T,) (the cell's mapped estimate), limiting_source_ne_m (T, 2) and
+    limiting_source_map_height_m (T,) (when the limiting cell is unmapped, the mapped cell it stands
+    in for and its estimate; NaN otherwise), lap (T,) the guidance's completed laps.
     lap_ends: index into t_s of each lap's end; lap_maps: the map at each lap's end.
     held: obstacle name -> (K, 2) [t, highest footprint cell as the law takes it], sampled every
     ``HELD_SAMPLE_S``. swath_cells: (M, 2) int cell indices (floor(n / c), floor(e / c)) where a
@@ -84,6 +86,8 @@ class FlightRecord:
     limiting_ne_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     limiting_law_height_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
     limiting_map_height_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    limiting_source_ne_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    limiting_source_map_height_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
     lap: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     lap_ends: list[int] = field(default_factory=list)
     lap_maps: list[report.MapRaster] = field(default_factory=list)
@@ -271,9 +275,12 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
                         c = decision.command
                         lim = c.limiting_cell_ne if c.engaged and c.limiting_cell_ne is not None else (math.nan, math.nan)
                         map_h = (float(grid.height_at(lim[0], lim[1])[0]) if math.isfinite(lim[0]) else math.nan)
+                        src = c.limiting_source_ne if c.engaged and c.limiting_source_ne is not None else (math.nan, math.nan)
+                        src_h = (float(grid.height_at(src[0], src[1])[0]) if math.isfinite(src[0]) else math.nan)
                         out.rows.append((t, truth["p"][0], truth["p"][1], -truth["p"][2], math.hypot(truth["v"][0], truth["v"][1]),
                                          nav.altitude_m, decision.climb_rate_mps, c.nominal_climb_mps, c.engaged,
-                                         lim[0], lim[1], c.limiting_height_m if c.engaged else math.nan, map_h, decision.lap))
+                                         lim[0], lim[1], c.limiting_height_m if c.engaged else math.nan, map_h, decision.lap,
+                                         src[0], src[1], src_h))
                         if decision.lap > len(rec.lap_ends):
                             rec.lap_ends.append(len(out.rows) - 1)
                             rec.lap_maps.append(report.raster_from_tiles(grid.tiles()))
@@ -317,6 +324,7 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
         rec.engaged = a[:, 8].astype(bool)
         rec.limiting_ne_m, rec.limiting_law_height_m, rec.limiting_map_height_m = a[:, 9:11], a[:, 11], a[:, 12]
         rec.lap = a[:, 13].astype(np.int64)
+        rec.limiting_source_ne_m, rec.limiting_source_map_height_m = a[:, 14:16], a[:, 16]
     if out.swath:
         rec.swath_cells = np.unique(np.concatenate(out.swath), axis=0)
     rec.held = {name: np.array(v, dtype=float).reshape(-1, 2) for name, v in out.held.items()}

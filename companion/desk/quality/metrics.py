@@ -110,20 +110,27 @@ def engaged_episodes(engaged: np.ndarray) -> list[tuple[int, int]]:
 
 
 def false_climbs(climb: np.ndarray, engaged: np.ndarray, limiting_ne: np.ndarray, limiting_map_h: np.ndarray,
-                 terrain_fn: TerrainFn, cell_m: float) -> int:
+                 terrain_fn: TerrainFn, cell_m: float, source_ne: np.ndarray | None = None,
+                 source_map_h: np.ndarray | None = None) -> int:
     """Climbs caused by false cells: engaged episodes in which, at the step of the largest commanded
     climb, the limiting cell lies on flat true ground (the whole cell within ``FLAT_TOLERANCE_M`` of
-    the datum) and its mapped height is more than ``FALSE_CELL_M`` above that ground."""
+    the datum) and its mapped height is more than ``FALSE_CELL_M`` above that ground. An unmapped
+    limiting cell standing in for a mapped one (``source_ne``, ``source_map_h``: NaN where none) is
+    judged by that mapped cell: the cell the climb was for."""
     count = 0
     for a, b in engaged_episodes(engaged):
         k = a + int(np.argmax(climb[a:b + 1]))
         n, e = limiting_ne[k]
-        if not (math.isfinite(n) and math.isfinite(e) and math.isfinite(limiting_map_h[k])):
+        map_h = limiting_map_h[k]
+        if not math.isfinite(map_h) and source_ne is not None and source_map_h is not None:
+            n, e = source_ne[k]
+            map_h = source_map_h[k]
+        if not (math.isfinite(n) and math.isfinite(e) and math.isfinite(map_h)):
             continue
         offs = (np.array([-0.5, 0.0, 0.5]) * cell_m)
         nn, ee = np.meshgrid(n + offs, e + offs)
         truth = terrain_fn(nn.ravel(), ee.ravel())
-        if np.all(np.abs(truth) <= FLAT_TOLERANCE_M) and limiting_map_h[k] - float(np.max(truth)) > FALSE_CELL_M:
+        if np.all(np.abs(truth) <= FLAT_TOLERANCE_M) and map_h - float(np.max(truth)) > FALSE_CELL_M:
             count += 1
     return count
 
@@ -208,7 +215,9 @@ def lap_figures(rec, terrain_fn: TerrainFn, obstacles: Sequence[ObstacleTruth], 
             "flat_far_s": _num(np.count_nonzero(ff) * _step_s(t), 1),
             "engaged_flat_fraction": _num(np.mean(rec.engaged[sl][ff])) if ff.any() else None,
             "false_climbs": false_climbs(rec.climb_mps[sl], rec.engaged[sl], rec.limiting_ne_m[sl],
-                                         rec.limiting_map_height_m[sl], terrain_fn, cell),
+                                         rec.limiting_map_height_m[sl], terrain_fn, cell,
+                                         rec.limiting_source_ne_m[sl] if len(rec.limiting_source_ne_m) else None,
+                                         rec.limiting_source_map_height_m[sl] if len(rec.limiting_source_map_height_m) else None),
             "speed_flown_mps": _num(_mean_speed(t[sl], ne[sl]), 2),
             "obstacles": obs,
         })

@@ -198,10 +198,9 @@ first included, and every obstacle in every lap. The code is companion/quality/m
   (an obstacle term demanded more than the nominal-altitude command).
 - **false climbs**: engaged episodes where, at the step of the largest commanded climb, the
   limiting cell lies on flat true ground and its mapped height is more than 2 m above it. An
-  episode whose limiting cell is unmapped (standing in at the highest mapped cell within 5 m along
-  track, docs/avoidance.md "Unmapped cells") is not counted: the cell it stands in for is not
-  recorded. Over flat ground that is most of the engaged time (docs/avoidance.md, "What sets the
-  height over flat ground now"), so this count is a lower bound.
+  unmapped limiting cell, standing in at the highest mapped cell within 5 m along track
+  (docs/avoidance.md, "Unmapped cells"), is judged by that mapped cell; one held at its own floor
+  or ceiling is not counted.
 - **map, flat**: cells whose true terrain is flat over the cell and one cell around it: bias
   (mean of mapped - true), RMSE, fraction within 1 m, and coverage (of the flat cells a camera ray
   met, the fraction the map holds). **map, all**: RMSE over every mapped cell.
