@@ -491,11 +491,11 @@ class PullUpLaw:
             corr = grid.corridor(p[:2] - fill * direction, direction, cfg.lookahead_m + fill, radius)
             along = corr.along_m - fill
             zone = (along >= 0.0) | (along * along + corr.cross_m * corr.cross_m <= radius * radius)
-        all_heights = law_heights(along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover,
-                                  cfg.local_radius_m, cfg.local_outlier_sigma, cfg.speed_limit_shortfall * cfg.clearance_m)
+        corridor_heights = law_heights(along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover,
+                                       cfg.local_radius_m, cfg.local_outlier_sigma, cfg.speed_limit_shortfall * cfg.clearance_m)
         in_zone = np.flatnonzero(zone)
-        heights = all_heights[in_zone]
-        all_along = along
+        heights = corridor_heights[in_zone]
+        corridor_along = along
         along, cross = along[zone], corr.cross_m[zone]
         north, east = corr.north_m[zone], corr.east_m[zone]
         considered = np.isfinite(heights)
@@ -541,7 +541,7 @@ class PullUpLaw:
         mapped = (corr.count > 0) & np.isfinite(corr.height_m)
         own_bound = (corr.floor_m is not None and h_i == corr.floor_m[j]) or (corr.ceiling_m is not None and h_i == corr.ceiling_m[j])
         if not mapped[j] and not own_bound:
-            src = stand_in_source(all_along, all_heights, mapped, j, fill, grid.cell_size_m, hover)
+            src = stand_in_source(corridor_along, corridor_heights, mapped, j, fill, grid.cell_size_m, hover)
             if src >= 0:
                 source = (float(corr.north_m[src]), float(corr.east_m[src]))
         return AvoidanceCommand(
