@@ -23,6 +23,7 @@ camera cannot see yet (:func:`view_distance`, :func:`view_speed_limit`), then :c
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -230,6 +231,17 @@ def fill_unknown(along_m: np.ndarray, height_m: np.ndarray, fill_m: float, cell_
     return h
 
 
+@functools.lru_cache(maxsize=8)
+def disc_offsets(r: int) -> tuple[np.ndarray, np.ndarray]:
+    """The cell offsets (rows, columns) of a disc of radius ``r`` cells, ``di^2 + dj^2 <= r^2``, row by
+    row (the order :func:`local_surface` adds them in). Read-only arrays."""
+    di, dj = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij")
+    inside = di * di + dj * dj <= r * r
+    di, dj = di[inside], dj[inside]
+    di.flags.writeable = dj.flags.writeable = False
+    return di, dj
+
+
 def local_surface(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray, variance: np.ndarray,
                   cell_m: float, radius_m: float, outlier_sigma: float, min_cells: int = 3,
                   max_step_m: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -281,7 +293,8 @@ def local_surface(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray,
     # rows of the mapped cells' tables: only the mapped cells are read (a diagonal corridor's
     # bounding box is mostly empty), and a disc's sum adds its offsets one after the other.
     at = i[known] * cols + j[known]
-    shifts = np.array([di * cols + dj for di in range(-r, r + 1) for dj in range(-r, r + 1) if di * di + dj * dj <= r * r])
+    di, dj = disc_offsets(r)
+    shifts = di * cols + dj
     discs = at[None, :] + shifts[:, None]  # (offsets, mapped cells)
     w_k = 1.0 / vk
     wh_k = w_k * hk
@@ -493,8 +506,7 @@ class PullUpLaw:
             zone = (along >= 0.0) | (along * along + corr.cross_m * corr.cross_m <= radius * radius)
         corridor_heights = law_heights(along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover,
                                        cfg.local_radius_m, cfg.local_outlier_sigma, cfg.speed_limit_shortfall * cfg.clearance_m)
-        in_zone = np.flatnonzero(zone)
-        heights = corridor_heights[in_zone]
+        heights = corridor_heights[zone]
         corridor_along = along
         along, cross = along[zone], corr.cross_m[zone]
         north, east = corr.north_m[zone], corr.east_m[zone]
@@ -537,10 +549,10 @@ class PullUpLaw:
                                     view_m, view_limit)
         h_i = float(heights[idx])
         source = None
-        j = int(in_zone[idx])
-        mapped = (corr.count > 0) & np.isfinite(corr.height_m)
+        j = int(np.flatnonzero(zone)[idx])  # the limiting cell in the corridor
         own_bound = (corr.floor_m is not None and h_i == corr.floor_m[j]) or (corr.ceiling_m is not None and h_i == corr.ceiling_m[j])
-        if not mapped[j] and not own_bound:
+        if not (corr.count[j] > 0 and math.isfinite(corr.height_m[j])) and not own_bound:
+            mapped = (corr.count > 0) & np.isfinite(corr.height_m)
             src = stand_in_source(corridor_along, corridor_heights, mapped, j, fill, grid.cell_size_m, hover)
             if src >= 0:
                 source = (float(corr.north_m[src]), float(corr.east_m[src]))
