@@ -158,8 +158,8 @@ def stand_in_source(along_m: np.ndarray, height_m: np.ndarray, mapped: np.ndarra
     along_m, height_m, mapped: (K,) sorted along track."""
     candidates = mapped.copy()
     if not hover:
-        bins = np.floor((along_m - along_m[0]) / cell_m).astype(np.int64)
-        candidates &= np.abs(bins - bins[i]) <= int(math.ceil(fill_m / cell_m))
+        bins, reach = fill_window(along_m, fill_m, cell_m)
+        candidates &= np.abs(bins - bins[i]) <= reach
     if not candidates.any():
         return -1
     idx = np.flatnonzero(candidates)
@@ -205,6 +205,13 @@ def margin_height(height_m: np.ndarray, variance: np.ndarray, k: float) -> np.nd
         return height_m + k * np.sqrt(variance)
 
 
+def fill_window(along_m: np.ndarray, fill_m: float, cell_m: float) -> tuple[np.ndarray, int]:
+    """The along-track window an unmapped cell takes its stand-in from (:func:`fill_unknown`,
+    :func:`stand_in_source`): each cell's bin of ``cell_m`` along track from the first (K,), and
+    how many bins either side ``fill_m`` reaches. along_m (K,) sorted along track."""
+    return np.floor((along_m - along_m[0]) / cell_m).astype(np.int64), int(math.ceil(fill_m / cell_m))
+
+
 def fill_unknown(along_m: np.ndarray, height_m: np.ndarray, fill_m: float, cell_m: float, hover: bool) -> np.ndarray:
     """Heights with unmapped cells (NaN) assumed as high as the highest mapped cell within
     ``fill_m`` along track (a gap between two points of a roof is roof, not ground at zero); at
@@ -217,11 +224,10 @@ def fill_unknown(along_m: np.ndarray, height_m: np.ndarray, fill_m: float, cell_
     if hover:
         h[unknown] = np.max(h[~unknown])
         return h
-    bins = np.floor((along_m - along_m[0]) / cell_m).astype(np.int64)
+    bins, reach = fill_window(along_m, fill_m, cell_m)
     n_bins = int(bins[-1]) + 1
     peak = np.full(n_bins, -np.inf)
     np.maximum.at(peak, bins[~unknown], h[~unknown])
-    reach = int(math.ceil(fill_m / cell_m))
     padded = np.concatenate([np.full(reach, -np.inf), peak, np.full(reach, -np.inf)])
     window = peak.copy()
     for k in range(2 * reach + 1):
