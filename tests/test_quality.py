@@ -463,3 +463,21 @@ def test_a_climb_for_an_unmapped_cell_is_judged_by_the_cell_it_stands_in_for():
     assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0) == 0
     assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0, source, source_h) == 1
 
+
+def test_a_climb_for_an_unmapped_cell_at_its_own_bound_is_judged_by_that_bound():
+    """false_climbs: an unmapped limiting cell with no mapped cell to stand in for was held at its
+    own floor (or ceiling); the episode is judged by the height the law took for it: a 3.5 m floor
+    on flat ground is a false climb, a 1.2 m one is not, and a floor over the block is none."""
+    def flat_or_block(n, e):
+        return np.where((np.asarray(n) >= 90.0) & (np.asarray(n) <= 110.0), 9.0, 0.0)
+
+    engaged = np.array([False, True, True, False, True, False, True, True, False])
+    climb = np.where(engaged, 1.0, 0.0)
+    lim = np.array([[50.5, 0.5]] * 6 + [[100.5, 0.5]] * 3)
+    unmapped = np.full(9, np.nan)
+    no_source = np.full((9, 2), np.nan)
+    law_h = np.array([np.nan, 3.5, 3.5, np.nan, 1.2, np.nan, 9.5, 9.5, np.nan])
+    assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0, no_source, np.full(9, np.nan)) == 0
+    assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0, no_source, np.full(9, np.nan),
+                                law_h) == 1
+

@@ -579,13 +579,16 @@ def test_systemd_analyze_verifies_the_unit_and_rates_its_exposure(tmp_path):
 
 
 class TimedLock:
-    """A lock that records how long each holder kept it."""
+    """A lock that records how long each holder kept it, and says whether it is held."""
 
     def __init__(self) -> None:
         import threading
 
         self._lock = threading.Lock()
         self.held: list[float] = []
+
+    def locked(self) -> bool:
+        return self._lock.locked()
 
     def __enter__(self):
         self._lock.acquire()
@@ -597,16 +600,27 @@ class TimedLock:
         self._lock.release()
 
 
-def test_a_snapshot_holds_the_grid_lock_only_to_copy_the_map(tmp_path):
+def test_a_snapshot_holds_the_grid_lock_only_to_copy_the_map(tmp_path, monkeypatch):
     """The control loop and the mapper share the grid lock: a snapshot of a large map (1000 tiles,
-    20 MB) takes it only for a copy of the layers, a small part of the whole save."""
+    20 MB) takes it once, for a copy of the layers; the encoding and the write (and fsync) run
+    after it is released. Checked by what runs under the lock, not by timing it (the copy's share
+    of the save moves with the host's page faults); the times are printed."""
+    import companion.service.daemon as daemon_module
+
     daemon, _, _ = make_daemon(tmp_path)
     daemon.grid = tile_grid(1, 1000)
-    daemon.grid_lock = TimedLock()
+    lock = daemon.grid_lock = TimedLock()
+    under_lock = []
+    for name in ("snapshot_bytes", "write_snapshot_bytes"):
+        real = getattr(daemon_module, name)
+        def spy(*args, _real=real, _name=name, **kwargs):
+            under_lock.append((_name, lock.locked()))
+            return _real(*args, **kwargs)
+        monkeypatch.setattr(daemon_module, name, spy)
     t0 = time.perf_counter()
     assert daemon.save_snapshot() is True
     total = time.perf_counter() - t0
-    held = max(daemon.grid_lock.held)
-    print(f"\nsnapshot of 1000 tiles: {total * 1e3:.0f} ms in all, grid lock held {held * 1e3:.0f} ms")
-    assert held < 0.35 * total
+    print(f"\nsnapshot of 1000 tiles: {total * 1e3:.0f} ms in all, grid lock held {max(lock.held) * 1e3:.0f} ms")
+    assert len(lock.held) == 1
+    assert under_lock == [("snapshot_bytes", False), ("write_snapshot_bytes", False)]
     assert grids_equal(read_snapshot(tmp_path / SNAPSHOT), daemon.grid)

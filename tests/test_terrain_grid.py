@@ -213,7 +213,8 @@ def test_a_first_batch_holding_the_top_and_the_face_keeps_the_top():
     the first batch brings 4.38, 6.19, 5.92 and 1.65 m into an empty cell and the cell takes 4.53 m;
     the top's third point later waits as pending for a second that never comes, and the cell ends at
     4.57 m, below the property's 4.7 m. The property runs derandomized so that the suite does not
-    draw this case at random; this test states it, and passes once the fusion keeps the top."""
+    draw this case at random; this test states it, and passes once the fusion keeps the top. A fix
+    measured in the closed loop and not kept: docs/terrain.md, "Fusion", step 5."""
     rng = np.random.default_rng(1157)
     grid = TerrainGrid(reset_evidence=1e6)
     pts = wall_points(rng, 6.0, 30, 0.25)

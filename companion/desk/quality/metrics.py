@@ -111,20 +111,25 @@ def engaged_episodes(engaged: np.ndarray) -> list[tuple[int, int]]:
 
 def false_climbs(climb: np.ndarray, engaged: np.ndarray, limiting_ne: np.ndarray, limiting_map_h: np.ndarray,
                  terrain_fn: TerrainFn, cell_m: float, source_ne: np.ndarray | None = None,
-                 source_map_h: np.ndarray | None = None) -> int:
+                 source_map_h: np.ndarray | None = None, limiting_law_h: np.ndarray | None = None) -> int:
     """Climbs caused by false cells: engaged episodes in which, at the step of the largest commanded
     climb, the limiting cell lies on flat true ground (the whole cell within ``FLAT_TOLERANCE_M`` of
     the datum) and its mapped height is more than ``FALSE_CELL_M`` above that ground. An unmapped
     limiting cell standing in for a mapped one (``source_ne``, ``source_map_h``: NaN where none) is
-    judged by that mapped cell: the cell the climb was for."""
+    judged by that mapped cell: the cell the climb was for. An unmapped limiting cell with no such
+    source was held at a bound of its own (a floor from features not yet converged, or its ceiling)
+    and is judged by the height the law took for it (``limiting_law_h``)."""
     count = 0
     for a, b in engaged_episodes(engaged):
         k = a + int(np.argmax(climb[a:b + 1]))
         n, e = limiting_ne[k]
         map_h = limiting_map_h[k]
-        if not math.isfinite(map_h) and source_ne is not None and source_map_h is not None:
-            n, e = source_ne[k]
-            map_h = source_map_h[k]
+        if not math.isfinite(map_h):
+            if source_ne is not None and source_map_h is not None and math.isfinite(source_map_h[k]):
+                n, e = source_ne[k]
+                map_h = source_map_h[k]
+            elif limiting_law_h is not None:
+                map_h = limiting_law_h[k]
         if not (math.isfinite(n) and math.isfinite(e) and math.isfinite(map_h)):
             continue
         offs = (np.array([-0.5, 0.0, 0.5]) * cell_m)
@@ -217,7 +222,8 @@ def lap_figures(rec, terrain_fn: TerrainFn, obstacles: Sequence[ObstacleTruth], 
             "false_climbs": false_climbs(rec.climb_mps[sl], rec.engaged[sl], rec.limiting_ne_m[sl],
                                          rec.limiting_map_height_m[sl], terrain_fn, cell,
                                          rec.limiting_source_ne_m[sl] if len(rec.limiting_source_ne_m) else None,
-                                         rec.limiting_source_map_height_m[sl] if len(rec.limiting_source_map_height_m) else None),
+                                         rec.limiting_source_map_height_m[sl] if len(rec.limiting_source_map_height_m) else None,
+                                         rec.limiting_law_height_m[sl] if len(rec.limiting_law_height_m) else None),
             "speed_flown_mps": _num(_mean_speed(t[sl], ne[sl]), 2),
             "obstacles": obs,
         })

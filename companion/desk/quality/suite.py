@@ -200,7 +200,7 @@ first included, and every obstacle in every lap. The code is companion/quality/m
   limiting cell lies on flat true ground and its mapped height is more than 2 m above it. An
   unmapped limiting cell, standing in at the highest mapped cell within 5 m along track
   (docs/avoidance.md, "Unmapped cells"), is judged by that mapped cell; one held at its own floor
-  or ceiling is not counted.
+  or ceiling (no mapped cell to stand in for) by the height the law took for it.
 - **map, flat**: cells whose true terrain is flat over the cell and one cell around it: bias
   (mean of mapped - true), RMSE, fraction within 1 m, and coverage (of the flat cells a camera ray
   met, the fraction the map holds). **map, all**: RMSE over every mapped cell.
