@@ -502,19 +502,18 @@ class PullUpLaw:
         if hover:
             direction, speed_used = np.array([1.0, 0.0]), 0.0
             corr = grid.corridor(p[:2], direction, 0.0, radius + fill)
-            along = corr.along_m
+            corridor_along = corr.along_m
             zone = np.hypot(corr.north_m - p[0], corr.east_m - p[1]) <= radius
         else:
             direction = intent if intent is not None else v[:2] / speed
             speed_used = max(float(v[:2] @ direction), 0.0)  # the speed over ground along the intent
             corr = grid.corridor(p[:2] - fill * direction, direction, cfg.lookahead_m + fill, radius)
-            along = corr.along_m - fill
-            zone = (along >= 0.0) | (along * along + corr.cross_m * corr.cross_m <= radius * radius)
-        corridor_heights = law_heights(along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover,
+            corridor_along = corr.along_m - fill
+            zone = (corridor_along >= 0.0) | (corridor_along * corridor_along + corr.cross_m * corr.cross_m <= radius * radius)
+        corridor_heights = law_heights(corridor_along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover,
                                        cfg.local_radius_m, cfg.local_outlier_sigma, cfg.speed_limit_shortfall * cfg.clearance_m)
         heights = corridor_heights[zone]
-        corridor_along = along
-        along, cross = along[zone], corr.cross_m[zone]
+        along, cross = corridor_along[zone], corr.cross_m[zone]
         north, east = corr.north_m[zone], corr.east_m[zone]
         considered = np.isfinite(heights)
         unknown_left = int(len(heights) - np.count_nonzero(considered))

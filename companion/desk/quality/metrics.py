@@ -109,6 +109,12 @@ def engaged_episodes(engaged: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(starts.tolist(), ends.tolist()))
 
 
+def _column(values: np.ndarray, sl: slice) -> np.ndarray | None:
+    """A lap's steps of a per-step column of a flight record, or None when the record does not hold
+    that column (it is empty)."""
+    return values[sl] if len(values) else None
+
+
 def false_climbs(climb: np.ndarray, engaged: np.ndarray, limiting_ne: np.ndarray, limiting_map_h: np.ndarray,
                  terrain_fn: TerrainFn, cell_m: float, source_ne: np.ndarray | None = None,
                  source_map_h: np.ndarray | None = None, limiting_law_h: np.ndarray | None = None) -> int:
@@ -221,9 +227,8 @@ def lap_figures(rec, terrain_fn: TerrainFn, obstacles: Sequence[ObstacleTruth], 
             "engaged_flat_fraction": _num(np.mean(rec.engaged[sl][ff])) if ff.any() else None,
             "false_climbs": false_climbs(rec.climb_mps[sl], rec.engaged[sl], rec.limiting_ne_m[sl],
                                          rec.limiting_map_height_m[sl], terrain_fn, cell,
-                                         rec.limiting_source_ne_m[sl] if len(rec.limiting_source_ne_m) else None,
-                                         rec.limiting_source_map_height_m[sl] if len(rec.limiting_source_map_height_m) else None,
-                                         rec.limiting_law_height_m[sl] if len(rec.limiting_law_height_m) else None),
+                                         *(_column(c, sl) for c in (rec.limiting_source_ne_m, rec.limiting_source_map_height_m,
+                                                                    rec.limiting_law_height_m))),
             "speed_flown_mps": _num(_mean_speed(t[sl], ne[sl]), 2),
             "obstacles": obs,
         })
