@@ -307,6 +307,10 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
           f"90th percentile {np.percentile(np.abs(err), 90):.2f} m; control {status['control']}; "
           f"frames mapped {status['mapper']['frames_mapped']}, dropped {status['camera']['queue_dropped']}")
     assert err.size > 200
+    # the filter's consistency, as the operator reads it in the status (docs/replay.md, "Filter consistency")
+    nis = status["mapper"]["innovation_nis_mean"]
+    print(f"mean innovation squared of the corner updates {nis} (2 = consistent)")
+    assert nis is not None and 0.0 < nis < 9.21
     # Against the truth the map carries the navigation error of the pass: the simulator injects a
     # slowly varying error (0.8 m vertical sigma, smooth attitude error; drivers/sim/navigation_error.py),
     # common to the points of a few seconds. Its shape (spread about the common offset) is the mapper's,

@@ -207,6 +207,45 @@ def test_emitted_points_carry_their_own_covariance_not_the_navigation_error():
     assert np.mean(np.abs(dz) < 3.0 * np.sqrt(zz)) > 0.95
 
 
+def test_the_step_reports_the_innovation_squared_of_every_corner_update():
+    """MapperStep.innovation_nis_sum (docs/replay.md, "Filter consistency") is the sum, over the
+    corners that updated a feature, of nu^T S^-1 nu with S of eq. 10; computed here from the model
+    on the stored state before the step (the paper's navigation model: P_x in S, no drift), with
+    every stored feature measured 0.2-0.8 px off its prediction."""
+    from companion.method.mapper.matching import innovation_covariance
+    cfg = dataclasses.replace(MapperConfig(), nav_attitude_correlation_s=0.0)
+    rng = np.random.default_rng(7)
+    world = _ground_scene(rng, 400)
+    mapper = Mapper(cfg, CAMERA, MOUNT)
+    cov = np.diag([1e-4] * 3 + [1e-4] * 3 + [np.radians(0.1) ** 2] * 3)
+    states = [NavState(k / 15, np.array([6.0 * k / 15, 0.0, -15.0]), np.array([6.0, 0, 0]), np.array([1.0, 0, 0, 0]), cov)
+              for k in range(2)]
+    p_c, R_nc = MOUNT.camera_pose(states[0].position_ned_m, np.eye(3))
+    h = (world - p_c) @ R_nc
+    uv = CAMERA.project(h)
+    vis = np.flatnonzero((h[:, 0] > 0) & CAMERA.in_image(uv))
+    first = mapper.step_measurements(states[0], uv[vis][:40])
+    assert first.n_initialised > 30 and first.n_corner_updates == 0 and first.innovation_nis_sum == 0.0
+    db = mapper.db
+    slots = db.active_slots()
+    ids = db.ids[slots].copy()
+    pose = CameraPose.from_nav(states[1].position_ned_m, states[1].quaternion_wxyz, MOUNT)
+    y, P, R_ref = db.y[slots], db.P[slots], db.R_ref[slots]
+    uv_pred, h_c = inverse_depth.measurement_model(y, R_ref, pose, CAMERA)
+    C_x, C_y = inverse_depth.measurement_jacobian(y, R_ref, pose, CAMERA, h_c)
+    S = innovation_covariance(C_x, C_y, states[1].pose_covariance, P, np.eye(2) * cfg.pixel_sigma_px**2)
+    angle = rng.uniform(0, 2 * np.pi, len(slots))
+    offset = rng.uniform(0.2, 0.8, len(slots))[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+    step = mapper.step_measurements(states[1], uv_pred + offset)
+    # measurement i is feature i's prediction moved: each matched pair is a feature and its own
+    m = step.matched_measurements
+    assert len(m) > 25 and step.n_corner_updates == step.n_matched == len(m)
+    assert np.array_equal(step.matched_ids, ids[m])
+    expected = float(np.einsum("ni,nij,nj->", offset[m], np.linalg.inv(S[m]), offset[m]))
+    assert step.innovation_nis_sum == pytest.approx(expected, rel=1e-9)
+    assert 0.0 < step.innovation_nis_sum / step.n_corner_updates < cfg.gate_chi2
+
+
 # ----------------------------------------------------------------------------------------------
 # Convergence, appearance
 # ----------------------------------------------------------------------------------------------

@@ -232,6 +232,8 @@ def test_the_engine_flies_the_same_flight_for_the_same_inputs(tmp_path):
     a, b = (engine.fly(str(path), cfg, 1, world=world) for _ in range(2))
     assert a.complete and b.complete, (a.problem, b.problem)
     assert a.frames > 100 and a.points_converged > 0
+    assert a.corner_updates > 1000 and a.innovation_nis_sum == b.innovation_nis_sum
+    assert 0.0 < engine.record_summary(a)["innovation_nis_mean"] < cfg.mapper.gate_chi2
     assert np.array_equal(a.truth_alt_m, b.truth_alt_m) and np.array_equal(a.truth_ne_m, b.truth_ne_m)
     assert np.array_equal(a.final_map.height, b.final_map.height, equal_nan=True)
     c = engine.fly(str(path), replace(cfg, **{"sim.seed": 4}), 1, world=world)

@@ -18,7 +18,7 @@ import yaml
 
 import replay_synthetic as rs
 from companion import cli
-from companion.config import CompanionConfig
+from companion.config import CompanionConfig, MapperConfig
 from companion.desk.map_metrics import bin_heights, compare, map_cells, read_reference_csv, reference_metrics
 from companion.desk.recordings.layouts import open_recording, recording_config
 from companion.desk.recordings.recording import WorldFrame, pose_covariance
@@ -190,6 +190,10 @@ def test_command_line_replay_with_reference_progress_and_limits(data, tmp_path, 
     m = json.loads((out / "metrics.json").read_text())
     assert m["frames_listed"] == 20 and m["config"]["parameterisation"] == "cartesian"
     assert m["reference"]["cells_compared"] > 0 and (out / "terrain_map.png").is_file()
+    # the filter's consistency: its mean innovation squared over the corner updates, printed too
+    nis = m["mapper"]["innovation_nis_mean"]
+    assert m["mapper"]["corner_updates"] > 100 and 0.0 < nis < MapperConfig().gate_chi2
+    assert f"filter consistency: mean innovation squared {nis:.2f} over {m['mapper']['corner_updates']}" in captured.out
     # bad input: a clear message and exit status 2, nothing written
     assert cli.main(["replay", str(tmp_path / "nothing-here")]) == 2
     assert "not a folder" in capsys.readouterr().err

@@ -322,7 +322,9 @@ def run_replay(
     examples: dict[str, str] = {}  # reason key -> its first instance, numbers kept
     counts = dict(listed=0, processed=0, without_nav=0, unreadable=0, refused=0)
     sums = dict(measurements=0, edgels=0, edge_updates=0, matched=0, initialised=0, removed=0, dropped=0, update_rejected=0, converged_points=0,
-                points_inserted=0, points_rejected_invalid=0, points_rejected_outlier=0, prior_fallback=0)
+                points_inserted=0, points_rejected_invalid=0, points_rejected_outlier=0, prior_fallback=0,
+                corner_updates=0)
+    nis_sum = 0.0
     path_ne: list[np.ndarray] = []
     frame_times: list[float] = []
     camera_alt: list[float] = []
@@ -365,6 +367,8 @@ def run_replay(
             sums["prior_fallback"] += step.n_prior_fallback
             sums["edgels"] += step.n_edgels
             sums["edge_updates"] += step.n_edge_matched
+            sums["corner_updates"] += step.n_corner_updates
+            nis_sum += step.innovation_nis_sum
             sums["converged_points"] += len(step.points)
             sums["points_inserted"] += stats.inserted
             sums["points_rejected_invalid"] += stats.rejected_invalid
@@ -397,7 +401,8 @@ def run_replay(
             "height_max_m": float(cells.height.max()) if len(cells) else None,
             "memory_bytes": grid.memory_bytes(),
         },
-        "mapper": sums | {"n_active_end": mapper.db.n_active},
+        "mapper": sums | {"n_active_end": mapper.db.n_active,
+                          "innovation_nis_mean": nis_sum / sums["corner_updates"] if sums["corner_updates"] else None},
         "nav_missing_reasons": nav_reasons,
         "reason_examples": examples,
         "warnings": plausibility(np.asarray(frame_times), np.asarray(camera_alt), np.asarray(camera_att),
@@ -572,6 +577,10 @@ def main(args: argparse.Namespace) -> int:
           f"{m['frames_unreadable']} unreadable, {m['frames_refused']} refused)"
           + (f"; mapper {fps:.1f} frames/s" if fps else ""))
     print(f"{m['converged_points']} converged points, {m['cells_mapped']} cells mapped -> {output}")
+    nis = m["mapper"]["innovation_nis_mean"]
+    if nis is not None:
+        print(f"filter consistency: mean innovation squared {nis:.2f} over {m['mapper']['corner_updates']} corner updates "
+              f"(2 = the covariances are the errors; below: conservative; above: overconfident; docs/replay.md)")
     for warning in m["warnings"]:
         print(f"companion replay: warning: {warning}", file=sys.stderr)
     why = nothing_mapped(m, path)

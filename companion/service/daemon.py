@@ -208,6 +208,8 @@ class Daemon:
         self.points_converged = 0
         self.edgels_in = 0  # edgels passed to the mapper (docs/mapper.md, "Edgels")
         self.edge_updates = 0  # edge features updated across their edge
+        self.innovation_nis_sum = 0.0  # the filter's consistency (docs/replay.md, "Filter consistency")
+        self.corner_updates = 0
         self.grid_rejections: collections.Counter[str] = collections.Counter()
         self.step_ms = Percentiles()
         self.step_cpu_ms = Percentiles()  # the mapper thread's CPU time per step: step_ms less what other threads took
@@ -407,6 +409,8 @@ class Daemon:
         step = self.mapper.step(nav, frame.image)
         self.edgels_in += step.n_edgels
         self.edge_updates += step.n_edge_matched
+        self.innovation_nis_sum += step.innovation_nis_sum
+        self.corner_updates += step.n_corner_updates
         changed = bool(len(step.points) or len(step.free_space) or len(step.floors))
         if changed:
             with self.grid_lock:
@@ -609,6 +613,8 @@ class Daemon:
                 "frames_mapped": self.frames_mapped, "frames_without_nav": dict(self.frames_no_nav),
                 "errors": self.mapper_errors, "points_converged": self.points_converged,
                 "edgels": self.edgels_in, "edge_updates": self.edge_updates,
+                "innovation_nis_mean": (round(self.innovation_nis_sum / self.corner_updates, 3)
+                                        if self.corner_updates else None),
                 "step_ms": self.step_ms.summary(), "step_cpu_ms": self.step_cpu_ms.summary(),
             },
             "map": {**grid, "rejections": dict(self.grid_rejections)},

@@ -68,6 +68,8 @@ class FlightRecord:
     held: obstacle name -> (K, 2) [t, highest footprint cell as the law takes it], sampled every
     ``HELD_SAMPLE_S``. swath_cells: (M, 2) int cell indices (floor(n / c), floor(e / c)) where a
     camera ray met the ground or a structure. final_map: the map at the end.
+    innovation_nis_sum / corner_updates: the mapper's innovation squared summed over its corner
+    updates, and their count (the filter's consistency; docs/replay.md, "Filter consistency").
     """
 
     scenario: str
@@ -96,6 +98,8 @@ class FlightRecord:
     final_map: report.MapRaster = field(default_factory=report.MapRaster.empty)
     frames: int = 0
     points_converged: int = 0
+    innovation_nis_sum: float = 0.0
+    corner_updates: int = 0
     sim_time_s: float = 0.0
     wall_s: float = 0.0
     complete: bool = False
@@ -310,6 +314,8 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
                     out.swath.append(np.floor(pts[:, :2] / grid.cell_size_m).astype(np.int64))
                 grid.add_evidence(step.points, step.free_space, step.floors)
                 rec.points_converged += len(step.points)
+                rec.innovation_nis_sum += step.innovation_nis_sum
+                rec.corner_updates += step.n_corner_updates
                 if on_frame is not None:
                     on_frame(t, truth, p_c, R_nc, image, step, mapper, nav_f, grid)
         rec.complete = True
@@ -334,5 +340,7 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
 
 def record_summary(rec: FlightRecord) -> dict[str, Any]:
     """A few numbers about the flight itself (not the pilot's figures)."""
-    return {"frames": rec.frames, "points_converged": rec.points_converged, "sim_time_s": round(rec.sim_time_s, 1),
+    nis = rec.innovation_nis_sum / rec.corner_updates if rec.corner_updates else None
+    return {"frames": rec.frames, "points_converged": rec.points_converged,
+            "innovation_nis_mean": round(nis, 3) if nis is not None else None, "sim_time_s": round(rec.sim_time_s, 1),
             "wall_s": round(rec.wall_s, 1), "realtime_factor": round(rec.realtime_factor, 1) if rec.wall_s else None}

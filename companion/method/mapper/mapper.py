@@ -108,6 +108,11 @@ class MapperStep:
     (``mapper.floor_max_depth_sigma_m``; docs/mapper.md, "Bounds of an unconverged feature").
     n_edgels: measurements that were edgels (docs/mapper.md, "Edgels"); n_edge_matched: edge
     features updated across their edge.
+    innovation_nis_sum: the sum over the corners that updated a feature of their normalised
+    innovation squared ``nu^T S^-1 nu`` (the matching's Mahalanobis distance, eq. 11), and
+    n_corner_updates how many: their mean is 2 (two degrees of freedom) for a filter whose
+    covariances are the errors it makes, less for a conservative one (docs/mapper.md, "How
+    conservative the filter is, measured").
     """
 
     points: TerrainPoints
@@ -133,6 +138,8 @@ class MapperStep:
     floors: TerrainFloors = field(default_factory=TerrainFloors.empty)
     n_edgels: int = 0
     n_edge_matched: int = 0
+    innovation_nis_sum: float = 0.0
+    n_corner_updates: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -519,6 +526,12 @@ class Mapper:
         )
         if desc is not None:
             corner_templates = pair_patches[pair_row[match_idx[ok]]]
+        # The consistency figure: each accepted corner update's innovation squared under the S
+        # its gate used (MapperStep.innovation_nis_sum).
+        nu = z[match_idx[ok]] - uv_pred[point_idx[ok]]
+        S_inv = S_inverse[0][point_idx[ok]]
+        innovation_nis_sum = float(np.einsum("ni,nij,nj->", nu, S_inv, nu))
+        n_corner_updates = int(np.count_nonzero(ok))
         n_edge_matched = 0
         if edge_pairs is not None and len(edge_pairs.point):
             # across the edge only (update.ekf_update_across): n^T (z - g), n^T C, n^T R_eff n
@@ -657,6 +670,8 @@ class Mapper:
             floors=floors,
             n_edgels=int(edgel.sum()),
             n_edge_matched=n_edge_matched,
+            innovation_nis_sum=innovation_nis_sum,
+            n_corner_updates=n_corner_updates,
         )
 
     # ------------------------------------------------------------------------------------------
