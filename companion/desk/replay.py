@@ -38,7 +38,7 @@ from companion.desk.recordings.layouts import open_recording, recording_config
 from companion.desk.recordings.recording import Overrides, Recording, RecordingError, reason_key
 from companion.desk.recordings.colmap import export_colmap
 from companion.desk.recordings.tum import export_tum
-from companion.method.mapper import Mapper
+from companion.method.mapper import Mapper, mean_innovation_squared
 from companion.method.mapper.features import HarrisDetector
 from companion.method.terrain.grid import TerrainGrid
 
@@ -402,7 +402,7 @@ def run_replay(
             "memory_bytes": grid.memory_bytes(),
         },
         "mapper": sums | {"n_active_end": mapper.db.n_active,
-                          "innovation_nis_mean": nis_sum / sums["corner_updates"] if sums["corner_updates"] else None},
+                          "innovation_nis_mean": mean_innovation_squared(nis_sum, sums["corner_updates"])},
         "nav_missing_reasons": nav_reasons,
         "reason_examples": examples,
         "warnings": plausibility(np.asarray(frame_times), np.asarray(camera_alt), np.asarray(camera_att),

@@ -42,7 +42,7 @@ from companion.config import replace as replace_config
 from companion.method.avoidance import AvoidanceCommand
 from companion.method.control import Controller, level_flight_view_limit
 from companion.method.geometry import camera_from_config
-from companion.method.mapper import Mapper
+from companion.method.mapper import Mapper, mean_innovation_squared
 from companion.method.messages import Frame, NavState
 from companion.method.terrain.codec import TilePublications
 from companion.method.terrain.grid import TerrainGrid
@@ -597,6 +597,7 @@ class Daemon:
                 "cell_size_m": self.grid.cell_size_m,
             }
         camera_stats = getattr(self.camera, "stats", None)
+        nis = mean_innovation_squared(self.innovation_nis_sum, self.corner_updates)
         return {
             "health": "ok" if not problems else "degraded",
             "problems": problems,
@@ -613,8 +614,7 @@ class Daemon:
                 "frames_mapped": self.frames_mapped, "frames_without_nav": dict(self.frames_no_nav),
                 "errors": self.mapper_errors, "points_converged": self.points_converged,
                 "edgels": self.edgels_in, "edge_updates": self.edge_updates,
-                "innovation_nis_mean": (round(self.innovation_nis_sum / self.corner_updates, 3)
-                                        if self.corner_updates else None),
+                "innovation_nis_mean": None if nis is None else round(nis, 3),
                 "step_ms": self.step_ms.summary(), "step_cpu_ms": self.step_cpu_ms.summary(),
             },
             "map": {**grid, "rejections": dict(self.grid_rejections)},

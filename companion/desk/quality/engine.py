@@ -38,7 +38,7 @@ from companion.method.avoidance import margin_height
 from companion.config import CompanionConfig
 from companion.method.control import Controller
 from companion.method.geometry import camera_from_config
-from companion.method.mapper import Mapper
+from companion.method.mapper import Mapper, mean_innovation_squared
 from companion.method.mapper.features import HarrisDetector
 from companion.method.messages import NavState
 from companion.method.navigation.assembler import NavAssembler
@@ -340,7 +340,7 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
 
 def record_summary(rec: FlightRecord) -> dict[str, Any]:
     """A few numbers about the flight itself (not the pilot's figures)."""
-    nis = rec.innovation_nis_sum / rec.corner_updates if rec.corner_updates else None
+    nis = mean_innovation_squared(rec.innovation_nis_sum, rec.corner_updates)
     return {"frames": rec.frames, "points_converged": rec.points_converged,
             "innovation_nis_mean": round(nis, 3) if nis is not None else None, "sim_time_s": round(rec.sim_time_s, 1),
             "wall_s": round(rec.wall_s, 1), "realtime_factor": round(rec.realtime_factor, 1) if rec.wall_s else None}

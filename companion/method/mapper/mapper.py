@@ -142,6 +142,13 @@ class MapperStep:
     n_corner_updates: int = 0
 
 
+def mean_innovation_squared(nis_sum: float, n_corner_updates: int) -> float | None:
+    """The filter's consistency over steps: their ``innovation_nis_sum`` added up, divided by their
+    ``n_corner_updates`` added up (2 for a consistent filter; :class:`MapperStep`); None before any
+    corner update."""
+    return nis_sum / n_corner_updates if n_corner_updates else None
+
+
 @dataclass(frozen=True, slots=True)
 class FeatureSnapshot:
     """The stored features (for status, displays and tests).
