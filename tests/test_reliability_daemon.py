@@ -135,15 +135,18 @@ def test_temporaries_of_interrupted_writes_are_removed_at_load(tmp_path):
 
 def start_writer(path: Path, blobs: list[bytes]) -> int:
     """Fork a process that writes ``blobs`` alternately to ``path`` (the service's writer, keeping
-    .prev) until it is killed; returns its pid once it runs. A fork is used rather than a fresh
+    .prev) until it is killed; returns its pid once its first snapshot is complete (the kill is
+    for the writes after it: on a busy machine a first write can outlast the test's random wait,
+    and a kill before any snapshot exists would prove nothing). A fork is used rather than a fresh
     interpreter so each try costs milliseconds, not an import of NumPy."""
     r, w = os.pipe()
     pid = os.fork()
     if pid == 0:  # the writer: nothing but file I/O until SIGKILL
         try:
             os.close(r)
+            write_snapshot_bytes(blobs[0], path, keep_previous=True)
             os.write(w, b"r")
-            i = 0
+            i = 1
             while True:
                 write_snapshot_bytes(blobs[i % 2], path, keep_previous=True)
                 i += 1
