@@ -223,6 +223,51 @@ def test_the_climb_setpoint_moves_no_faster_than_its_slew_limits():
     assert low.send is False
 
 
+def test_a_point_is_scored_along_its_line_of_sight_in_the_frame_it_was_seen_in():
+    """engine.point_depth_errors: ground points seen from a camera 15 m up, expressed in a
+    navigation estimate that is 1.5 m and 2 deg off (rotated about the camera), are on the surface
+    (error below a millimetre); the same points moved 3 m towards the camera along their line of
+    sight are 3 m in front of it (and still more than 2 m in front of the nearest surface about
+    the line of sight: lines up to 0.01 rad off meet a grazed ground up to a metre nearer); a point above the horizon meets nothing (NaN); the sigma is the
+    covariance along the line of sight, here built as s^2 u u^T plus a little of every direction.
+    A point 5 cm beyond the far edge of the default building's roof, its line of sight just over
+    the edge, is metres in front of the ground that line meets, but a line 0.002 rad lower meets
+    the roof within a metre of it: not a phantom."""
+    from companion.method.geometry import CameraMount, so3_exp
+    world = World.load("flat")
+    mount = CameraMount.from_euler_deg(0.0, -45.0, 0.0)
+    p_c, R_nc = mount.camera_pose(np.array([0.0, 0.0, -15.0]), np.eye(3))
+    p_c_est = p_c + np.array([1.5, -0.8, 0.4])
+    R_nc_est = so3_exp(np.radians([0.5, -1.0, 2.0])) @ R_nc
+    A = R_nc @ R_nc_est.T  # estimate's frame -> true, about the camera
+
+    def in_estimate(X):
+        return p_c_est + (X - p_c) @ A  # the inverse of X = p_c + A (X_est - p_c_est)
+
+    ground = np.array([[12.0, -3.0, 0.0], [20.0, 4.0, 0.0], [30.0, 0.5, 0.0], [16.0, 8.0, 0.0]])
+    u = (ground - p_c) / np.linalg.norm(ground - p_c, axis=1, keepdims=True)
+    u_est = u @ A
+    s = np.array([0.3, 0.5, 0.8, 1.2])
+    cov = s[:, None, None] ** 2 * np.einsum("ni,nj->nij", u_est, u_est) + 1e-6 * np.eye(3)
+    err, nearest, sigma = engine.point_depth_errors(in_estimate(ground), cov, p_c, R_nc, p_c_est, R_nc_est, world.raycast)
+    assert np.all(np.abs(err) < 1e-3) and np.all(np.abs(nearest) < 1e-3) and sigma == pytest.approx(s, rel=1e-4)
+    err, nearest, _ = engine.point_depth_errors(in_estimate(ground - 3.0 * u), cov, p_c, R_nc, p_c_est, R_nc_est,
+                                                world.raycast)
+    assert err == pytest.approx(np.full(4, -3.0), abs=1e-3) and np.all((nearest >= -3.001) & (nearest < -2.0))
+    sky = p_c + np.array([10.0, 0.0, -5.0])  # above the camera: every line goes up
+    err, nearest, _ = engine.point_depth_errors(in_estimate(sky[None]), np.eye(3)[None], p_c, R_nc, p_c_est, R_nc_est,
+                                                world.raycast)
+    assert np.isnan(err[0]) and np.isnan(nearest[0])
+    # An outline: the building's roof is 12 m up over north 90..110; seen from 20 m up at north 60.
+    town = World.load("default")
+    top = town.obstacle("building").height_m
+    cam = np.array([60.0, 0.0, -20.0])
+    beyond = np.array([110.05, 0.0, -(top + 0.01)])  # its line of sight passes 2 cm over the far edge
+    err, nearest, _ = engine.point_depth_errors(beyond[None], np.eye(3)[None] * 0.01, cam, np.eye(3), cam, np.eye(3),
+                                                town.raycast)
+    assert err[0] < -5.0 and abs(nearest[0]) < engine.POINT_OFF_M
+
+
 def test_the_engine_flies_the_same_flight_for_the_same_inputs(tmp_path):
     path = tmp_path / "short.yaml"
     path.write_text(json.dumps({"name": "short", "circuit": {"waypoints_ne_m": [[0, 0], [40, 0], [40, 20], [0, 20]],
@@ -234,6 +279,10 @@ def test_the_engine_flies_the_same_flight_for_the_same_inputs(tmp_path):
     assert a.frames > 100 and a.points_converged > 0
     assert a.corner_updates > 1000 and a.innovation_nis_sum == b.innovation_nis_sum
     assert 0.0 < engine.record_summary(a)["innovation_nis_mean"] < cfg.mapper.gate_chi2
+    # every emitted point scored against the true surface along its line of sight, the same way twice
+    assert a.points_scored > 0.9 * a.points_converged and a.points_scored == b.points_scored
+    assert (a.points_in_front, a.points_behind) == (b.points_in_front, b.points_behind)
+    assert a.points_in_front + a.points_behind < 0.01 * a.points_scored
     assert np.array_equal(a.truth_alt_m, b.truth_alt_m) and np.array_equal(a.truth_ne_m, b.truth_ne_m)
     assert np.array_equal(a.final_map.height, b.final_map.height, equal_nan=True)
     c = engine.fly(str(path), replace(cfg, **{"sim.seed": 4}), 1, world=world)
@@ -278,6 +327,11 @@ def test_quality_quick_subset_runs_end_to_end(tmp_path):
         assert isinstance(lap["false_climbs"], int)
         assert all(isinstance(run["map"]["flat"][k], float) for k in ("bias_m", "rmse_m", "within_1m"))
         assert isinstance(run["speed_flown_mps"], float) and run["speed_flown_mps"] > 1.0
+        assert run["points_scored"] > 0 and 0 <= run["points_in_front"] < 0.01 * run["points_scored"]
+    assert "| phantom points |" in md
+    assert [row["phantom_points"] for row in doc["summary"]] == [
+        sum(r["points_in_front"] for r in doc["runs"] if (r["scenario"], r["parameterisation"]) == (row["scenario"], row["parameterisation"]))
+        for row in doc["summary"]]
     # The comparison: each scenario's figures before (the committed baseline) and now.
     before = {(r["scenario"], r["parameterisation"]): r for r in json.loads(baseline.read_text())["summary"]}
     assert "## Against the baseline" in md and doc["baseline"]["path"] == str(baseline)

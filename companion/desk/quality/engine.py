@@ -50,6 +50,9 @@ HELD_SAMPLE_S = 0.5        # how often the map's hold on each obstacle is sample
 SWATH_GRID = (12, 9)       # pixel rays per frame cast to find the ground the camera saw
 TAKEOFF_TIMEOUT_S = 120.0  # simulated seconds to reach the control altitude
 CRUISE_REACHED_M = 0.5     # the record starts when the vehicle first comes this close to the nominal altitude
+POINT_OFF_M = 2.0          # an emitted point this far along its line of sight from the true surface
+POINT_OFF_SIGMA = 5.0      # and this many of its own sigmas is counted as off (points_in_front / points_behind)
+POINT_CONE_RAD = (0.002, 0.005, 0.01)  # lines this far off a point's line of sight: the nearest surface may be there (an outline)
 
 
 @dataclass
@@ -70,6 +73,10 @@ class FlightRecord:
     camera ray met the ground or a structure. final_map: the map at the end.
     innovation_nis_sum / corner_updates: the mapper's innovation squared summed over its corner
     updates, and their count (the filter's consistency; docs/replay.md, "Filter consistency").
+    points_scored: emitted points whose line of sight meets the world; of them points_in_front /
+    points_behind: more than ``POINT_OFF_M`` and ``POINT_OFF_SIGMA`` sigma nearer the camera than
+    the nearest surface about their line of sight (a phantom: above the ground or before a face),
+    or farther (:func:`point_depth_errors`).
     """
 
     scenario: str
@@ -100,6 +107,9 @@ class FlightRecord:
     points_converged: int = 0
     innovation_nis_sum: float = 0.0
     corner_updates: int = 0
+    points_scored: int = 0
+    points_in_front: int = 0
+    points_behind: int = 0
     sim_time_s: float = 0.0
     wall_s: float = 0.0
     complete: bool = False
@@ -316,6 +326,8 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
                 rec.points_converged += len(step.points)
                 rec.innovation_nis_sum += step.innovation_nis_sum
                 rec.corner_updates += step.n_corner_updates
+                if len(step.points):
+                    _score_points(rec, step.points, p_c, R_nc, mount.camera_pose(nav_f.position_ned_m, nav_f.R_nb), world)
                 if on_frame is not None:
                     on_frame(t, truth, p_c, R_nc, image, step, mapper, nav_f, grid)
         rec.complete = True
@@ -338,9 +350,70 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
     return rec
 
 
+def point_depth_errors(positions_ned_m: np.ndarray, covariances: np.ndarray, p_c: np.ndarray, R_nc: np.ndarray,
+                       p_c_est: np.ndarray, R_nc_est: np.ndarray, raycast) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How far each emitted point (N, 3) lies along its line of sight from the true surface:
+    (error (N,) m, nearest (N,) m, sigma (N,) m). ``error`` = the point's range minus the surface's
+    along the line of sight, < 0 = nearer the camera (a phantom above the ground or before a face);
+    ``nearest`` = of the line of sight and four lines at each angle of ``POINT_CONE_RAD`` off it,
+    the error of the one whose surface is nearest the point's range: a point on an obstacle's
+    outline, whose line of sight just misses the roof and meets the ground behind it, is near the
+    roof (``error`` metres, ``nearest`` well under ``POINT_OFF_M``); NaN where no line meets
+    anything. ``sigma``: the point's covariance along the line of sight, ``sqrt(u_est^T C u_est)``.
+
+    The points live in the navigation estimate's frame, in which the camera was at ``p_c_est``,
+    ``R_nc_est``; the true camera was at ``p_c``, ``R_nc``. The estimate's frame maps into the true
+    one rigidly about the camera, ``X = p_c + R_nc R_nc_est^T (X_est - p_c_est)``, so the point is
+    compared with the surface it was seen on, not with the navigation's error. ``raycast(origin
+    (3,), unit rays (N, 3))`` -> ranges (N,) (inf where nothing is hit)."""
+    X_est = np.asarray(positions_ned_m, dtype=float).reshape(-1, 3)
+    A = R_nc @ R_nc_est.T
+    d = (X_est - p_c_est) @ A.T
+    r = np.sqrt((d * d).sum(axis=1))
+    ok = np.isfinite(r) & (r > 0)
+    u = np.zeros_like(d)
+    u[ok] = d[ok] / r[ok, None]
+    ranges = np.full((len(r), 1 + 4 * len(POINT_CONE_RAD)), np.inf)
+    if ok.any():
+        uo = u[ok]
+        side = np.cross(uo, [0.0, 0.0, 1.0])
+        flat = np.linalg.norm(side, axis=1) < 1e-6  # looking straight down or up
+        side[flat] = np.cross(uo[flat], [1.0, 0.0, 0.0])
+        side /= np.linalg.norm(side, axis=1, keepdims=True)
+        up = np.cross(uo, side)
+        rays = [uo] + [uo + a * v for a in POINT_CONE_RAD for v in (side, -side, up, -up)]
+        rays = np.stack(rays, axis=1)
+        rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+        ranges[ok] = np.asarray(raycast(p_c, rays.reshape(-1, 3)), dtype=float).reshape(len(uo), -1)
+    errors = np.where(np.isfinite(ranges), r[:, None] - ranges, np.nan)
+    error = np.where(ok, errors[:, 0], np.nan)
+    some = ok & np.isfinite(errors).any(axis=1)
+    nearest = np.full(len(r), np.nan)
+    if some.any():
+        e = errors[some]
+        nearest[some] = e[np.arange(len(e)), np.nanargmin(np.where(np.isfinite(e), np.abs(e), np.inf), axis=1)]
+    u_est = u @ A
+    sigma = np.sqrt(np.einsum("ni,nij,nj->n", u_est, np.asarray(covariances, dtype=float), u_est))
+    return error, nearest, sigma
+
+
+def _score_points(rec: FlightRecord, points, p_c, R_nc, est_pose, world) -> None:
+    """Add one step's emitted points to the record's point figures (:class:`FlightRecord`)."""
+    _, nearest, sigma = point_depth_errors(points.positions_ned_m, points.covariances, p_c, R_nc, est_pose[0],
+                                           est_pose[1], world.raycast)
+    seen = np.isfinite(nearest) & (sigma > 0)
+    e, sigma = nearest[seen], sigma[seen]
+    off = (np.abs(e) > POINT_OFF_M) & (np.abs(e) > POINT_OFF_SIGMA * sigma)
+    rec.points_scored += int(len(e))
+    rec.points_in_front += int(np.count_nonzero(off & (e < 0)))
+    rec.points_behind += int(np.count_nonzero(off & (e > 0)))
+
+
 def record_summary(rec: FlightRecord) -> dict[str, Any]:
     """A few numbers about the flight itself (not the pilot's figures)."""
     nis = mean_innovation_squared(rec.innovation_nis_sum, rec.corner_updates)
     return {"frames": rec.frames, "points_converged": rec.points_converged,
-            "innovation_nis_mean": round(nis, 3) if nis is not None else None, "sim_time_s": round(rec.sim_time_s, 1),
+            "innovation_nis_mean": round(nis, 3) if nis is not None else None,
+            "points_scored": rec.points_scored, "points_in_front": rec.points_in_front, "points_behind": rec.points_behind,
+            "sim_time_s": round(rec.sim_time_s, 1),
             "wall_s": round(rec.wall_s, 1), "realtime_factor": round(rec.realtime_factor, 1) if rec.wall_s else None}

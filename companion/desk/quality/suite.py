@@ -140,6 +140,7 @@ def summarise(runs: list[dict]) -> list[dict[str, Any]]:
         p95 = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("cruise_excess_p95_m"))
         eng = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("engaged_flat_fraction"))
         false = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("false_climbs"))
+        phantoms = _vals(group, lambda r: r.get("points_in_front"))
         obst = _vals([o for r in group for o in (_lap(r, 1).get("obstacles") or [])],
                      lambda o: o.get("mapped_fraction_of_textured"))
         rows.append({
@@ -153,6 +154,7 @@ def summarise(runs: list[dict]) -> list[dict[str, Any]]:
             "cruise_excess_p95_m": max(p95) if p95 else None,
             "engaged_flat_fraction": max(eng) if eng else None,
             "false_climbs": int(sum(false)) if false else 0,
+            "phantom_points": int(sum(phantoms)) if phantoms else None,
             "flat_bias_m": _mean(_vals(group, lambda r: r["map"]["flat"].get("bias_m"))),
             "flat_within_1m": min(_vals(group, lambda r: r["map"]["flat"].get("within_1m")), default=None),
             "all_rmse_m": _mean(_vals(group, lambda r: r["map"]["all"].get("rmse_m"))),
@@ -201,6 +203,12 @@ first included, and every obstacle in every lap. The code is companion/quality/m
   unmapped limiting cell, standing in at the highest mapped cell within 5 m along track
   (docs/avoidance.md, "Unmapped cells"), is judged by that mapped cell; one held at its own floor
   or ceiling (no mapped cell to stand in for) by the height the law took for it.
+- **phantom points**: emitted points more than 2 m and more than 5 of their own sigmas nearer the
+  camera than the true surface about their line of sight (above the ground, before a face; the
+  nearest of the surfaces along the line of sight and lines 0.002-0.01 rad off it, so a point on
+  an obstacle's outline is not counted), summed over the seeds; each point is compared in the frame
+  it was seen in, so the navigation's error is not counted (quality.json per run:
+  `points_scored`, `points_in_front`, `points_behind`).
 - **map, flat**: cells whose true terrain is flat over the cell and one cell around it: bias
   (mean of mapped - true), RMSE, fraction within 1 m, and coverage (of the flat cells a camera ray
   met, the fraction the map holds). **map, all**: RMSE over every mapped cell.
@@ -292,9 +300,9 @@ def markdown(doc: dict[str, Any], figures: dict[str, str]) -> str:
     lines += [f"- {h}" for h in headline(doc["runs"])]
     lines += ["", "## Per scenario (worst over the seeds)", "",
               "| scenario | mapper | runs ok | first-pass clearance | least clearance | warning margin (s) | "
-              "cruise excess median / p95 (m) | engaged over flat | false climbs | flat bias (m) | flat within 1 m | "
-              "all RMSE (m) | obstacle height lap 2 | speed flown / commanded (m/s) |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "cruise excess median / p95 (m) | engaged over flat | false climbs | phantom points | flat bias (m) | "
+              "flat within 1 m | all RMSE (m) | obstacle height lap 2 | speed flown / commanded (m/s) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for s in doc["summary"]:
         lines.append(
             f"| {s['scenario']} | {s['parameterisation'].replace('_', ' ')} | {s['complete']}/{s['runs']} | "
@@ -302,7 +310,7 @@ def markdown(doc: dict[str, Any], figures: dict[str, str]) -> str:
             f"{'never held' if s.get('obstacle_never_held') else _f(s['worst_warning_margin_s'], '{:.1f}')} | "
             f"{_f(s['cruise_excess_median_m'], '{:.1f}')} / "
             f"{_f(s['cruise_excess_p95_m'], '{:.1f}')} | {_f(s['engaged_flat_fraction'])} | {s['false_climbs']} | "
-            f"{_f(s['flat_bias_m'])} | {_f(s['flat_within_1m'])} | {_f(s['all_rmse_m'])} | "
+            f"{_f(s.get('phantom_points'), '{:.0f}')} | {_f(s['flat_bias_m'])} | {_f(s['flat_within_1m'])} | {_f(s['all_rmse_m'])} | "
             f"{_f(s['obstacle_height_lap2_fraction'])} | {_f(s['speed_flown_mps'], '{:.1f}')} / "
             f"{_f(s['speed_commanded_mps'], '{:.1f}')} |")
     lines += [""] + baseline_lines(doc)
