@@ -385,16 +385,12 @@ def point_depth_errors(positions_ned_m: np.ndarray, covariances: np.ndarray, p_c
         rays = np.stack(rays, axis=1)
         rays /= np.linalg.norm(rays, axis=2, keepdims=True)
         ranges[ok] = np.asarray(raycast(p_c, rays.reshape(-1, 3)), dtype=float).reshape(len(uo), -1)
-    errors = np.where(np.isfinite(ranges), r[:, None] - ranges, np.nan)
-    error = np.where(ok, errors[:, 0], np.nan)
-    some = ok & np.isfinite(errors).any(axis=1)
-    nearest = np.full(len(r), np.nan)
-    if some.any():
-        e = errors[some]
-        nearest[some] = e[np.arange(len(e)), np.nanargmin(np.where(np.isfinite(e), np.abs(e), np.inf), axis=1)]
+    errors = np.where(np.isfinite(ranges), r[:, None] - ranges, np.nan)  # NaN where a line meets nothing
+    closest = np.argmin(np.where(np.isfinite(errors), np.abs(errors), np.inf), axis=1)  # 0 (NaN) if none meets
+    nearest = errors[np.arange(len(r)), closest]
     u_est = u @ A
     sigma = np.sqrt(np.einsum("ni,nij,nj->n", u_est, np.asarray(covariances, dtype=float), u_est))
-    return error, nearest, sigma
+    return errors[:, 0], nearest, sigma
 
 
 def _score_points(rec: FlightRecord, points, p_c, R_nc, est_pose, world) -> None:
