@@ -35,17 +35,16 @@ def profile_end(w, dt, a, cap, steps=20000):
     needed to stop at -a is not yet reached in the remaining time, then brake. Returns the
     altitude gained and the final climb rate."""
     # time-optimal structure: accelerate, (cruise), decelerate; found numerically by bisection on t1
+    step = dt / steps
+    k = np.arange(steps + 1)
+
     def run(t1):
-        h, v, t = 0.0, w, 0.0
-        step = dt / steps
-        for _ in range(steps):
-            acc = a if t < t1 else -a
-            v_new = min(v + acc * step, cap)
-            if v_new < 0 and t >= t1:
-                v_new = max(v_new, v - a * step)
-            h += 0.5 * (v + v_new) * step
-            v, t = v_new, t + step
-        return h, v
+        # climb rate at every step: +a (held at the cap) before the switch, -a after it
+        n1 = min(int(math.ceil(t1 / step - 1e-12)), steps)  # steps taken at +a
+        v = np.minimum(w + a * step * np.minimum(k, n1), cap)
+        v[0] = w
+        v -= a * step * np.maximum(k - n1, 0)
+        return float(0.5 * step * (v[:-1] + v[1:]).sum()), float(v[-1])
 
     lo, hi = 0.0, dt
     for _ in range(40):
