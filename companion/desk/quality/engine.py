@@ -327,7 +327,8 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
                 rec.innovation_nis_sum += step.innovation_nis_sum
                 rec.corner_updates += step.n_corner_updates
                 if len(step.points):
-                    _score_points(rec, step.points, p_c, R_nc, mount.camera_pose(nav_f.position_ned_m, nav_f.R_nb), world)
+                    p_c_est, R_nc_est = mount.camera_pose(nav_f.position_ned_m, nav_f.R_nb)
+                    _score_points(rec, step.points, p_c, R_nc, p_c_est, R_nc_est, world)
                 if on_frame is not None:
                     on_frame(t, truth, p_c, R_nc, image, step, mapper, nav_f, grid)
         rec.complete = True
@@ -393,10 +394,11 @@ def point_depth_errors(positions_ned_m: np.ndarray, covariances: np.ndarray, p_c
     return errors[:, 0], nearest, sigma
 
 
-def _score_points(rec: FlightRecord, points, p_c, R_nc, est_pose, world) -> None:
-    """Add one step's emitted points to the record's point figures (:class:`FlightRecord`)."""
-    _, nearest, sigma = point_depth_errors(points.positions_ned_m, points.covariances, p_c, R_nc, est_pose[0],
-                                           est_pose[1], world.raycast)
+def _score_points(rec: FlightRecord, points, p_c, R_nc, p_c_est, R_nc_est, world) -> None:
+    """Add one step's emitted points to the record's point figures (:class:`FlightRecord`); the
+    camera's true pose and its pose in the navigation estimate as in :func:`point_depth_errors`."""
+    _, nearest, sigma = point_depth_errors(points.positions_ned_m, points.covariances, p_c, R_nc, p_c_est, R_nc_est,
+                                           world.raycast)
     seen = np.isfinite(nearest) & (sigma > 0)
     e, sigma = nearest[seen], sigma[seen]
     off = (np.abs(e) > POINT_OFF_M) & (np.abs(e) > POINT_OFF_SIGMA * sigma)
