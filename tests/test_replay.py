@@ -30,9 +30,9 @@ from companion.method.terrain.grid import TerrainGrid
 
 # Region of the flight's map, and the accuracy the mapper reaches on it today (measured: median
 # |error| ~0.02 m, RMSE ~0.07 m, 100 % of cells within 1 m). Since the mapper emits a point only
-# when its depth sigma is below mapper.converged_max_depth_sigma_m (0.5 m; docs/mapper.md, "Map
-# quality in the simulated flight"), this 6 s flight maps ~135 cells instead of 300+ of which the
-# far, imprecise ones were metres off: the coverage bound follows.
+# when its depth sigma is below the emission limit (docs/mapper.md, "Convergence and emission"),
+# this 6 s flight maps ~226 cells, not the 300+ a relative limit alone gives, whose far, imprecise
+# ones were metres off: the coverage bound follows.
 MIN_CELLS = 100
 NORTH, EAST = (-20.0, 140.0), (-60.0, 60.0)
 MEDIAN_ABS_MAX_M = 0.3

@@ -72,6 +72,17 @@ def chi2_one_dof(chi2_two_dof: float) -> float:
     return NormalDist().inv_cdf(0.5 * (1.0 + min(p, 1.0 - 1e-15))) ** 2
 
 
+def emission_depth_sigma_limit(height_above_m: np.ndarray, cfg: MapperConfig) -> np.ndarray:
+    """The depth sigma (m) below which a feature goes to the map (docs/mapper.md, "Convergence and
+    emission"): ``max(converged_max_depth_sigma_m, converged_depth_sigma_per_height * dh)``, ``dh``
+    the camera's height above the feature (m, (K,)). The law keeps its clearance above a point's
+    ``h + k sigma``, so a sigma is paid for out of the clearance over that point: a fixed share
+    of the height flown above it, never less than the absolute limit (a face near the camera's
+    own height). NaN height: NaN (never below it)."""
+    dh = np.asarray(height_above_m, dtype=np.float64)
+    return np.maximum(cfg.converged_max_depth_sigma_m, cfg.converged_depth_sigma_per_height * dh)
+
+
 def _concatenate(t_s: float, parts: list[TerrainPoints]) -> TerrainPoints:
     parts = [p for p in parts if len(p)]
     if not parts:
@@ -577,9 +588,9 @@ class Mapper:
         unmatched = slots[not_updated]  # ascending, as slots
         db.adjust_confidence(updated, unmatched, cfg.confidence_max)
 
-        # Convergence: a feature goes to the map once, when its depth sigma first falls below
-        # converged_max_depth_sigma_m. Before that, from floor_max_depth_sigma_m on, it bounds its
-        # cell from below every frame (docs/mapper.md, "Bounds of an unconverged feature").
+        # Convergence: a feature goes to the map once, when its depth sigma first falls below the
+        # emission limit (emission_depth_sigma_limit). Before that, from floor_max_depth_sigma_m on,
+        # it bounds its cell from below every frame (docs/mapper.md, "Bounds of an unconverged feature").
         y_upd, P_upd, R_upd, origin_upd = y_new[ok], P_new[ok], R_ref[point_idx[ok]], db.origin[updated]
         X_upd = model.point(y_upd, R_upd)  # each updated feature's point, for both of its bounds
         free_space = self._free_space(nav.t_s, pose.p_c, y_upd, P_upd, R_upd, origin_upd, X_upd)
@@ -588,7 +599,8 @@ class Mapper:
         # an edgel measures one coordinate, a corner two: an edge feature needs twice the updates
         min_updates = np.where(db.edge[updated], 2 * cfg.converge_min_updates, cfg.converge_min_updates)
         ready = (db.updates[updated] >= min_updates) & (rel < cfg.converged_rel_depth_sigma)
-        newly = ~db.converged[updated] & ready & (depth_sigma < cfg.converged_max_depth_sigma_m)
+        limit = emission_depth_sigma_limit(X_upd[:, 2] - pose.p_c[2], cfg)
+        newly = ~db.converged[updated] & ready & (depth_sigma < limit)
         bounding = ~db.converged[updated] & ~newly & ready & (depth_sigma < cfg.floor_max_depth_sigma_m)
         floors = self._floors(nav.t_s, y_upd[bounding], P_upd[bounding], R_upd[bounding], origin_upd[bounding],
                               X_upd[bounding])
