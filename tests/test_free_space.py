@@ -92,6 +92,29 @@ def test_floors_keep_the_highest_bound_and_a_line_of_sight_below_drops_them():
     assert grid.height_at(np.array([10.5]), np.array([0.5]))[2][0] == 0
 
 
+def test_a_cells_own_points_replace_its_floor_and_live_features_raise_theirs_again():
+    """A floor is a warning until the cell's own evidence comes (docs/terrain.md, "Floors"): a
+    point that sets the cell's height drops it, so a floor left by a feature that converged
+    elsewhere or died does not outlive the point; in the same frame a feature still unconverged
+    raises its floor again after the points, so a live warning stands."""
+    grid = TerrainGrid()
+    cov = np.eye(3)[None] * 0.09
+    stale = TerrainFloors(0.0, np.array([[10.5, 0.5, -3.0]]))
+    grid.add_evidence(TerrainPoints.empty(0.0), floors=stale)
+    assert bounds(grid, 10.5)[1] == pytest.approx(3.0)
+    grid.add_evidence(TerrainPoints(0.1, np.array([[10.5, 0.5, 1.0]]), cov, np.array([1])))  # h = -1 m
+    h, _, n = grid.height_at(np.array([10.5]), np.array([0.5]))
+    assert n[0] == 1 and h[0] == pytest.approx(-1.0)
+    assert bounds(grid, 10.5)[1] == -np.inf
+    # Points and a live floor in the same frame: the floor stands after the points.
+    grid.add_evidence(TerrainPoints(0.2, np.array([[10.5, 0.5, 1.0]]), cov, np.array([2])),
+                      floors=TerrainFloors(0.2, np.array([[10.5, 0.5, -4.0]])))
+    assert bounds(grid, 10.5)[1] == pytest.approx(4.0)
+    # A point in another cell leaves this cell's floor alone.
+    grid.add_evidence(TerrainPoints(0.3, np.array([[20.5, 0.5, 0.0]]), cov, np.array([3])))
+    assert bounds(grid, 10.5)[1] == pytest.approx(4.0)
+
+
 def test_snapshots_carry_ceiling_weight_and_floor_and_the_wire_does_not():
     grid = TerrainGrid()
     grid.insert(TerrainPoints(0.0, np.array([[5.5, 0.5, -1.0]]), np.eye(3)[None] * 0.01, np.array([1])))

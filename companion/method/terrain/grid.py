@@ -280,13 +280,15 @@ class TerrainGrid:
     def add_evidence(self, points: TerrainPoints, free_space: FreeSpaceRays | None = None,
                      floors: TerrainFloors | None = None) -> InsertStats:
         """One frame's evidence, in order: the free space its lines of sight crossed
-        (:meth:`carve`), the floors of its features not yet converged (:meth:`raise_floors`), then
-        its converged points (:meth:`insert`, whose statistics are returned)."""
+        (:meth:`carve`), its converged points (:meth:`insert`, whose statistics are returned), then
+        the floors of its features not yet converged (:meth:`raise_floors`): a point replaces its
+        cell's floor, and the features still unconverged raise theirs again after it."""
         if free_space is not None and len(free_space):
             self.carve(free_space)
+        stats = self.insert(points) if len(points) else InsertStats()
         if floors is not None and len(floors):
             self.raise_floors(floors)
-        return self.insert(points) if len(points) else InsertStats()
+        return stats
 
     def insert(self, points: TerrainPoints) -> InsertStats:
         """Fuse a batch of converged points (docs/terrain.md, "Fusion"): each cell keeps its top
@@ -406,6 +408,9 @@ class TerrainGrid:
         self._p.reshape(-1)[cell_flat] = pending
         changed = update | raised
         if changed.any():
+            # The cell's own evidence replaces the floor (docs/terrain.md, "Floors"): a floor left
+            # by a feature that has since converged elsewhere, or died, goes with it.
+            self._f.reshape(-1)[cell_flat[changed]] = -np.inf
             hc = h_new[changed]
             self._h_lo = min(self._h_lo, float(hc.min()))
             self._h_hi = max(self._h_hi, float(hc.max()))
