@@ -19,6 +19,7 @@ from companion.method.mapper import cartesian, inverse_depth
 from companion.method.messages import FreeSpaceRays, TerrainFloors, TerrainPoints
 from companion.method.terrain import TerrainGrid
 from companion.method.terrain.codec import decode_tile, encode_tile
+from companion.method.terrain.fusion import confirm_floor, highest_two_per_cell
 from companion.method.terrain.grid import Corridor
 
 
@@ -83,6 +84,8 @@ def test_a_phantom_does_not_survive_carve_rays_looks_through_it():
 def test_floors_keep_the_highest_bound_and_a_line_of_sight_below_drops_them():
     grid = TerrainGrid()
     assert grid.raise_floors(TerrainFloors(0.0, np.array([[10.5, 0.5, -4.0], [10.6, 0.4, -6.0]]))) == 1
+    assert bounds(grid, 10.5)[1] == pytest.approx(4.0)  # two bounds: the lower; 6 m waits
+    assert grid.raise_floors(TerrainFloors(0.0, np.array([[10.5, 0.5, -6.0]]))) == 1  # 6 m again: confirmed
     assert bounds(grid, 10.5)[1] == pytest.approx(6.0)
     assert grid.raise_floors(TerrainFloors(0.0, np.array([[10.5, 0.5, -5.0]]))) == 0  # lower: no change
     assert grid.raise_floors(TerrainFloors(0.0, np.array([[np.nan, 0.5, -5.0], [2e6, 0.0, 0.0]]))) == 0  # invalid rows
@@ -90,6 +93,47 @@ def test_floors_keep_the_highest_bound_and_a_line_of_sight_below_drops_them():
     assert stats.floors_dropped == 1 and bounds(grid, 10.5)[1] == -np.inf
     # A floor is not evidence of where the surface is: the map's height layer is untouched.
     assert grid.height_at(np.array([10.5]), np.array([0.5]))[2][0] == 0
+
+
+def test_one_wild_bound_lifts_no_floor_and_a_second_confirms_only_the_lower():
+    """As a point above a cell (docs/terrain.md, "Floors"): one bound alone raises nothing, however
+    high; a second, of the same frame or a later one, in the cell or a neighbouring one, shows the
+    terrain reaches at least the lower of the two. A line of sight below a pending bound drops it,
+    as it drops a floor."""
+    grid = TerrainGrid()
+    assert grid.raise_floors(TerrainFloors(0.0, np.array([[10.5, 0.5, -5.0]]))) == 0  # a track a frame old, 5 m up
+    assert bounds(grid, 10.5)[1] == -np.inf
+    assert grid.raise_floors(TerrainFloors(0.1, np.array([[10.5, 0.5, -1.0]]))) == 1  # a second, lower
+    assert bounds(grid, 10.5)[1] == pytest.approx(1.0)
+    grid.carve(one_ray((14.0, 0.5, 0.0)))  # ~3.2 m over the cell: below the pending 5 m, above the floor
+    assert bounds(grid, 10.5)[1] == pytest.approx(1.0)
+    assert grid.raise_floors(TerrainFloors(0.2, np.array([[10.5, 0.5, -4.5]]))) == 0  # 5 m is gone: 4.5 m waits
+    assert bounds(grid, 10.5)[1] == pytest.approx(1.0)
+    # A feature whose bound holds over two frames confirms itself.
+    other = TerrainFloors(0.3, np.array([[30.5, 0.5, -7.0]]))
+    assert grid.raise_floors(other) == 0 and grid.raise_floors(other) == 1
+    assert bounds(grid, 30.5)[1] == pytest.approx(7.0)
+    # So does one that moved to the next cell while converging, or another feature's bound there
+    # (waiting, or of the same frame): at the lower of the two. Two cells apart is not support.
+    assert grid.raise_floors(TerrainFloors(0.4, np.array([[50.5, 0.5, -9.0]]))) == 0
+    assert grid.raise_floors(TerrainFloors(0.5, np.array([[51.5, 1.5, -8.0]]))) == 1  # diagonal neighbour
+    assert bounds(grid, 51.5, 1.5)[1] == pytest.approx(8.0) and bounds(grid, 50.5)[1] == -np.inf
+    assert grid.raise_floors(TerrainFloors(0.6, np.array([[60.5, 0.5, -6.0], [62.5, 0.5, -6.0]]))) == 0
+    assert grid.raise_floors(TerrainFloors(0.7, np.array([[70.5, 0.5, -6.0], [70.5, 1.5, -4.0]]))) == 2
+    assert bounds(grid, 70.5)[1] == pytest.approx(4.0) and bounds(grid, 70.5, 1.5)[1] == pytest.approx(4.0)
+
+
+def test_confirm_floor_is_the_second_highest_of_the_pending_and_the_batch():
+    inf = np.inf
+    h1 = np.array([5.0, 5.0, 5.0, -inf, 3.0])
+    h2 = np.array([2.0, -inf, -inf, -inf, -inf])
+    pending = np.array([-inf, 4.0, 7.0, 6.0, -inf])
+    floor, still = confirm_floor(h1, h2, pending)
+    assert floor.tolist() == [2.0, 4.0, 5.0, -inf, -inf]
+    assert still.tolist() == [5.0, 5.0, 7.0, 6.0, 3.0]
+    cell = np.array([2, 0, 2, 2, 1])
+    first, second = highest_two_per_cell(cell, np.array([1.0, 4.0, 3.0, 2.0, 0.5]), 4)
+    assert first.tolist() == [4.0, 0.5, 3.0, -inf] and second.tolist() == [-inf, -inf, 2.0, -inf]
 
 
 def test_a_cells_own_points_replace_its_floor_and_live_features_raise_theirs_again():
@@ -101,6 +145,7 @@ def test_a_cells_own_points_replace_its_floor_and_live_features_raise_theirs_aga
     cov = np.eye(3)[None] * 0.09
     stale = TerrainFloors(0.0, np.array([[10.5, 0.5, -3.0]]))
     grid.add_evidence(TerrainPoints.empty(0.0), floors=stale)
+    grid.add_evidence(TerrainPoints.empty(0.05), floors=stale)  # held over two frames: confirmed
     assert bounds(grid, 10.5)[1] == pytest.approx(3.0)
     grid.add_evidence(TerrainPoints(0.1, np.array([[10.5, 0.5, 1.0]]), cov, np.array([1])))  # h = -1 m
     h, _, n = grid.height_at(np.array([10.5]), np.array([0.5]))
@@ -108,7 +153,7 @@ def test_a_cells_own_points_replace_its_floor_and_live_features_raise_theirs_aga
     assert bounds(grid, 10.5)[1] == -np.inf
     # Points and a live floor in the same frame: the floor stands after the points.
     grid.add_evidence(TerrainPoints(0.2, np.array([[10.5, 0.5, 1.0]]), cov, np.array([2])),
-                      floors=TerrainFloors(0.2, np.array([[10.5, 0.5, -4.0]])))
+                      floors=TerrainFloors(0.2, np.array([[10.5, 0.5, -4.0], [10.5, 0.5, -4.0]])))
     assert bounds(grid, 10.5)[1] == pytest.approx(4.0)
     # A point in another cell leaves this cell's floor alone.
     grid.add_evidence(TerrainPoints(0.3, np.array([[20.5, 0.5, 0.0]]), cov, np.array([3])))
@@ -119,7 +164,7 @@ def test_snapshots_carry_ceiling_weight_and_floor_and_the_wire_does_not():
     grid = TerrainGrid()
     grid.insert(TerrainPoints(0.0, np.array([[5.5, 0.5, -1.0]]), np.eye(3)[None] * 0.01, np.array([1])))
     grid.carve(one_ray((20.0, 0.5, 0.0)))
-    grid.raise_floors(TerrainFloors(0.0, np.array([[12.5, 0.5, -2.0]])))
+    grid.raise_floors(TerrainFloors(0.0, np.array([[12.5, 0.5, -2.0], [12.5, 0.5, -2.0]])))
     for key in grid.keys():
         full = grid.tile(key, with_disagreement=True)
         back = decode_tile(encode_tile(full, with_disagreement=True))
@@ -171,7 +216,8 @@ def test_a_floor_ahead_makes_the_law_climb_before_any_point_converged():
     grid = TerrainGrid()
     law = PullUpLaw(CFG)
     assert law.command([0.0, 0.5, -10.0], [5.0, 0.0, 0.0], grid).climb_rate_mps == pytest.approx(0.0)
-    grid.raise_floors(TerrainFloors(0.0, np.array([[25.5, 0.5, -6.0]])))
+    for _ in range(2):  # a feature's bound held over two frames
+        grid.raise_floors(TerrainFloors(0.0, np.array([[25.5, 0.5, -6.0]])))
     cmd = law.command([0.0, 0.5, -10.0], [5.0, 0.0, 0.0], grid)
     assert cmd.engaged and cmd.limiting_height_m == pytest.approx(6.0) and cmd.climb_rate_mps > 0
 
@@ -180,7 +226,7 @@ def test_the_law_looks_along_the_route_not_the_drift():
     """The vehicle flies north-east (turning) while its route leads north: the obstacle north counts,
     at the speed over ground along the route (3 m/s)."""
     grid = TerrainGrid()
-    grid.raise_floors(TerrainFloors(0.0, np.array([[20.5, 0.5, -8.0]])))
+    grid.raise_floors(TerrainFloors(0.0, np.array([[20.5, 0.5, -8.0], [20.5, 0.5, -8.0]])))
     law = PullUpLaw(CFG)
     drift = law.command([0.0, 0.5, -10.0], [3.0, 3.0, 0.0], grid)
     along_route = law.command([0.0, 0.5, -10.0], [3.0, 3.0, 0.0], grid, direction_ne=[1.0, 0.0])

@@ -8,6 +8,7 @@ import pytest
 from companion.config import MapperConfig
 from companion.method.geometry import CameraMount, PinholeCamera, euler_to_quat
 from companion.method.mapper import Mapper, cartesian, inverse_depth
+from companion.method.mapper.mapper import ConsistencyScale
 from companion.method.mapper.matching import gate_and_match, innovation_covariance, mahalanobis_distances
 from companion.method.mapper.projection import CameraPose
 from companion.method.mapper.update import ekf_update
@@ -291,6 +292,53 @@ def test_converged_feature_is_emitted_once_on_convergence_not_again_when_it_leav
     for fid, frames in emitted.items():
         assert len(frames) == 1 and fid in removed  # on convergence only (the map would count it twice)
     assert m.features().ids.size == 0
+
+
+def test_consistency_scale_is_the_running_mean_innovation_squared_over_two():
+    """docs/mapper.md, "Calibrated point covariance": 1 until min_updates, then m / 2 within
+    [1 / max_factor, max_factor], forgetting with ``memory`` updates."""
+    c = ConsistencyScale(memory=1000.0, min_updates=100.0, max_factor=10.0)
+    c.add(0.5 * 60, 60)
+    assert c.scale == 1.0  # 60 updates: not yet
+    c.add(0.5 * 60, 60)
+    assert c.scale == pytest.approx(0.25)
+    c.add(float("nan"), 50)
+    c.add(10.0, 0)
+    n_old = 60 * (1 - 1e-3) ** 60 + 60  # the first 60 forgotten by the second 60's updates
+    assert c.scale == pytest.approx(0.25) and c.updates == pytest.approx(n_old)  # NaN, none: ignored
+    # The filter's innovations grow to what it says (m = 2): after one memory the old mean weighs
+    # (1 - 1/1000)^1000 ~ 1/e of what it did, and the scale is most of the way to 1.
+    for _ in range(100):
+        c.add(2.0 * 10, 10)
+    w_old = n_old * (1 - 1e-3) ** 1000
+    expected = (0.5 * w_old + 2.0 * (c.updates - w_old)) / c.updates / 2
+    assert c.scale == pytest.approx(expected) and 0.85 < c.scale < 1.0
+    low = ConsistencyScale(memory=1000.0, min_updates=0.0, max_factor=10.0)
+    low.add(0.001, 100)
+    assert low.scale == pytest.approx(0.1)
+    high = ConsistencyScale(memory=1000.0, min_updates=0.0, max_factor=10.0)
+    high.add(1e4, 100)
+    assert high.scale == pytest.approx(10.0)
+
+
+@pytest.mark.parametrize("calibrate", [True, False])
+def test_emitted_points_carry_the_filter_covariance_times_the_consistency_scale(calibrate):
+    """The points sent to the map, and only they, are scaled: the features keep the filter's own."""
+    rng = np.random.default_rng(5)
+    world = np.array([[30.0, 0.0, 0.0], [32.0, 5.0, 0.0], [28.0, -4.0, 0.0], [35.0, -2.0, 0.0]])
+    m = mapper(max_features=10, calibration_min_updates=20.0, calibrate_point_covariance=calibrate)
+    checked = 0
+    for k, step, _ in flight(m, world, 150, rng):
+        assert step.point_covariance_scale == (m.consistency.scale if calibrate else 1.0)
+        if len(step.points):
+            before = m.features()  # the emitted features are still in the database this step
+            i = np.searchsorted(before.ids, step.points.feature_ids)
+            own = before.covariances[i]
+            np.testing.assert_allclose(step.points.covariances, own * step.point_covariance_scale, rtol=1e-9)
+            checked += len(step.points)
+    assert checked >= 3
+    if calibrate:  # 0.5 px measured, 1 px told
+        assert 0.1 <= m.consistency.scale < 0.6
 
 
 def test_database_never_exceeds_capacity():

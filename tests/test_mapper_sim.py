@@ -79,21 +79,23 @@ def true_pose(k: int) -> tuple[np.ndarray, np.ndarray]:
     return p, R
 
 
-def navigation_covariance() -> np.ndarray:
+def navigation_covariance(sigma_att_rad: float = SIGMA_ATT_RAD, sigma_pos_m: float = SIGMA_POS_M) -> np.ndarray:
     cov = np.zeros((9, 9))
-    cov[0:3, 0:3] = np.eye(3) * SIGMA_POS_M**2
+    cov[0:3, 0:3] = np.eye(3) * sigma_pos_m**2
     cov[3:6, 3:6] = np.eye(3) * 0.1**2
-    cov[6:9, 6:9] = np.eye(3) * SIGMA_ATT_RAD**2
+    cov[6:9, 6:9] = np.eye(3) * sigma_att_rad**2
     return cov
 
 
-def make_run(seed: int):
+def make_run(seed: int, pixel_sigma: float = PIXEL_SIGMA, sigma_att_rad: float = SIGMA_ATT_RAD,
+             sigma_pos_m: float = SIGMA_POS_M):
     """Measurements and navigation for one run: lists of (NavState, uv (M, 2), point index (M,),
-    true camera centre (3,))."""
+    true camera centre (3,)). ``pixel_sigma``: the noise the measurements get (the mapper is told
+    PIXEL_SIGMA)."""
     rng = np.random.default_rng(seed)
     world = make_world(rng)
     score = rng.permutation(len(world))  # a fixed "corner strength" per point: lower = stronger
-    cov = navigation_covariance()
+    cov = navigation_covariance(sigma_att_rad, sigma_pos_m)
     frames = []
     for k in range(N_FRAMES):
         p, R_nb = true_pose(k)
@@ -103,10 +105,10 @@ def make_run(seed: int):
         seen = CAMERA.in_image(uv) & ~occluded(p_c, world)
         idx = np.flatnonzero(seen)
         idx = idx[np.argsort(score[idx])][:100]
-        z = uv[idx] + rng.normal(0.0, PIXEL_SIGMA, (len(idx), 2))
+        z = uv[idx] + rng.normal(0.0, pixel_sigma, (len(idx), 2))
         # Estimate = truth with an error drawn from P_x: p_est = p + dp, R_true = Exp(dtheta) R_est.
-        p_est = p + rng.normal(0.0, SIGMA_POS_M, 3)
-        R_est = so3_exp(-rng.normal(0.0, SIGMA_ATT_RAD, 3)) @ R_nb
+        p_est = p + rng.normal(0.0, sigma_pos_m, 3)
+        R_est = so3_exp(-rng.normal(0.0, sigma_att_rad, 3)) @ R_nb
         nav = NavState(k / RATE_HZ, p_est, np.array([SPEED_MPS, 0, 0]), matrix_to_quat(R_est), cov)
         frames.append((nav, z, idx, p_c))
     return world, frames
@@ -142,6 +144,7 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
     origin: dict[int, np.ndarray] = {}
     first_converged: dict[int, int] = {}
     final: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    emitted: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # the last point each feature sent to the map
     first_seen: dict[int, int] = {}
     last_seen: dict[int, int] = {}
     mapped: dict[int, int] = {}
@@ -169,6 +172,7 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
         for fid, X, P in zip(step.points.feature_ids.tolist(), step.points.positions_ned_m, step.points.covariances):
             first_converged.setdefault(fid, k)
             final[fid] = (X, P)
+            emitted[fid] = (X, P)
             if fid not in misassociated:
                 mapped.setdefault(truth_of[fid], k)
         snap = mapper.features()
@@ -185,8 +189,12 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
     ids = sorted(born)
     err = np.full((len(ids), 3), np.nan)
     nees = np.full(len(ids), np.nan)
+    nees_emitted = np.full(len(ids), np.nan)
     depth_err = np.full(len(ids), np.nan)
     for n, f in enumerate(ids):
+        if f in emitted:
+            e = emitted[f][0] - world[truth_of[f]]
+            nees_emitted[n] = e @ np.linalg.solve(emitted[f][1], e)
         if f in final:
             X, P = final[f]
             truth = world[truth_of[f]]
@@ -205,6 +213,7 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
         "misassociated": np.array([f in misassociated for f in ids], dtype=bool),
         "err": err,
         "nees": nees,
+        "nees_emitted": nees_emitted,
         "depth_err": depth_err,
         "frames_to_map": np.array([mapped[i] - first_seen[i] if i in mapped else np.inf for i in points]),
         "point_on_block": np.array([world[i][2] < -0.5 for i in points], dtype=bool),
@@ -366,3 +375,24 @@ if __name__ == "__main__":
     t0 = time.perf_counter()
     print(report())
     print(f"({time.perf_counter() - t0:.1f} s)")
+
+
+def test_the_measured_consistency_calibrates_the_points_of_a_filter_told_too_much_noise():
+    """The corners are measured to 0.4 px while the mapper is told 1 px (and the navigation's
+    errors are small, so the pixel noise dominates the innovation): the filter's own
+    covariance overstates the points' errors (NEES well below its 3 degrees of freedom), and
+    scaled by the measured consistency (docs/mapper.md, "Calibrated point covariance") the points
+    it sends to the map claim the errors they make again (the first few, sent before the running
+    mean holds calibration_min_updates, keep the filter's own)."""
+    nees = {True: [], False: []}
+    for seed in range(8):
+        world, frames = make_run(2000 + seed, pixel_sigma=0.4, sigma_att_rad=np.radians(0.02), sigma_pos_m=0.005)
+        for calibrate in (True, False):
+            r = play(world, frames, "inverse_depth", calibrate_point_covariance=calibrate)
+            good = np.isfinite(r["nees_emitted"]) & ~r["misassociated"]
+            nees[calibrate].append(r["nees_emitted"][good])
+    own, calibrated = np.concatenate(nees[False]), np.concatenate(nees[True])
+    print(f"\nNEES told 1 px, measured 0.4 px: own covariance mean {own.mean():.2f} (median {np.median(own):.2f}, "
+          f"n={len(own)}), calibrated {calibrated.mean():.2f} (median {np.median(calibrated):.2f}, n={len(calibrated)})")
+    assert own.mean() < 1.5
+    assert 2.25 < calibrated.mean() < 3.75

@@ -37,6 +37,28 @@ def patch(n0, e0, size, height, rng=None, sigma_h=0.0):
 # ----------------------------------------------------------------------------------- fusion
 
 
+@pytest.mark.xfail(strict=True, reason="known defect: an empty cell takes one point however far above its "
+                   "mapped neighbours it stands")
+def test_one_point_far_above_its_mapped_neighbours_does_not_make_a_cell():
+    """A mismatched track (a feature whose measurements were of two corners metres apart) goes to
+    the map as one point metres above flat ground that claims a fraction of that. Traced in the
+    scenario suite's dense_blocks flight (seed 2): 8.6 m with a height sigma of 0.19 m, at a corner
+    of the route, in a cell no later line of sight passed under; it held the vehicle 4.7 m above
+    its commanded height on two laps. In tests/test_map_quality.py's flight one such point stood
+    7.4 m high claiming 0.78 m on seeds 1 and 4 of five (which seeds depends on every change to the
+    flight). Over a cell that holds evidence one point far above waits for a second
+    (test_one_wild_point_never_raises_a_cell_and_a_second_only_to_the_lower_of_the_two); an empty
+    cell takes it.
+    Passes once a point standing out of its mapped neighbours needs a second too."""
+    grid = TerrainGrid()
+    ground = patch(0, 0, 11, 0.0)
+    ground = ground[~((ground[:, 0] == 5.5) & (ground[:, 1] == 5.5))]
+    grid.insert(points(ground, sigma_h=0.3))
+    grid.insert(points([[5.5, 5.5, 8.6]], sigma_h=0.19))
+    h, _, n = grid.height_at(np.array([5.5]), np.array([5.5]))
+    assert n[0] == 0 or h[0] < 3.0
+
+
 def test_fusion_converges_to_true_height_and_variance_shrinks():
     rng = np.random.default_rng(1)
     grid = TerrainGrid()
@@ -342,12 +364,16 @@ def test_height_at_is_batched_and_handles_negative_tiles_and_unknown():
 
 
 def brute_corridor(origin, d, length, w, extent=40):
+    """The cells whose centre lies within ``w`` of the segment, and those on its edge (within
+    1e-9 m: which side float rounding puts them on is not the corridor's to say, e.g. a direction
+    of angle 5e-324 leaves a denormal distance of a centre on the axis)."""
     cells = np.mgrid[-extent:extent, -extent:extent].reshape(2, -1).T
     centre = cells + 0.5
     rel = centre - origin
     s = np.clip(rel @ d, 0, length)
     dist = np.hypot(*(rel - s[:, None] * d).T)
-    return {tuple(c) for c in cells[dist <= w]}
+    edge = np.abs(dist - w) <= 1e-9
+    return {tuple(c) for c in cells[dist <= w]}, {tuple(c) for c in cells[edge]}
 
 
 @settings(max_examples=60, deadline=None)
@@ -361,7 +387,8 @@ def test_corridor_is_exactly_the_cells_within_the_miss_distance(on, oe, angle, l
     d = np.array([np.cos(angle), np.sin(angle)])
     c = grid.corridor((on, oe), d, length, width)
     got = {(int(np.floor(n)), int(np.floor(e))) for n, e in zip(c.north_m, c.east_m)}
-    assert got == brute_corridor(np.array([on, oe]), d, length, width)
+    inside, edge = brute_corridor(np.array([on, oe]), d, length, width)
+    assert got - edge == inside - edge
     assert np.all(np.diff(c.along_m) >= 0)
     rel = np.c_[c.north_m - on, c.east_m - oe]
     np.testing.assert_allclose(c.along_m, rel @ d, atol=1e-9)

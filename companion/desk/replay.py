@@ -402,7 +402,8 @@ def run_replay(
             "memory_bytes": grid.memory_bytes(),
         },
         "mapper": sums | {"n_active_end": mapper.db.n_active,
-                          "innovation_nis_mean": mean_innovation_squared(nis_sum, sums["corner_updates"])},
+                          "innovation_nis_mean": mean_innovation_squared(nis_sum, sums["corner_updates"]),
+                          "point_covariance_scale_end": mapper.consistency.scale if mapper.cfg.calibrate_point_covariance else 1.0},
         "nav_missing_reasons": nav_reasons,
         "reason_examples": examples,
         "warnings": plausibility(np.asarray(frame_times), np.asarray(camera_alt), np.asarray(camera_att),
@@ -580,7 +581,8 @@ def main(args: argparse.Namespace) -> int:
     nis = m["mapper"]["innovation_nis_mean"]
     if nis is not None:
         print(f"filter consistency: mean innovation squared {nis:.2f} over {m['mapper']['corner_updates']} corner updates "
-              f"(2 = the covariances are the errors; below: conservative; above: overconfident; docs/replay.md)")
+              f"(2 = the covariances are the errors; below: conservative; above: overconfident; docs/replay.md); "
+              f"points' covariance scaled by {m['mapper']['point_covariance_scale_end']:.2f} at the end")
     for warning in m["warnings"]:
         print(f"companion replay: warning: {warning}", file=sys.stderr)
     why = nothing_mapped(m, path)

@@ -210,6 +210,7 @@ class Daemon:
         self.edge_updates = 0  # edge features updated across their edge
         self.innovation_nis_sum = 0.0  # the filter's consistency (docs/replay.md, "Filter consistency")
         self.corner_updates = 0
+        self.point_covariance_scale = 1.0  # the last step's (docs/mapper.md, "Calibrated point covariance")
         self.grid_rejections: collections.Counter[str] = collections.Counter()
         self.step_ms = Percentiles()
         self.step_cpu_ms = Percentiles()  # the mapper thread's CPU time per step: step_ms less what other threads took
@@ -411,6 +412,7 @@ class Daemon:
         self.edge_updates += step.n_edge_matched
         self.innovation_nis_sum += step.innovation_nis_sum
         self.corner_updates += step.n_corner_updates
+        self.point_covariance_scale = step.point_covariance_scale
         changed = bool(len(step.points) or len(step.free_space) or len(step.floors))
         if changed:
             with self.grid_lock:
@@ -615,6 +617,7 @@ class Daemon:
                 "errors": self.mapper_errors, "points_converged": self.points_converged,
                 "edgels": self.edgels_in, "edge_updates": self.edge_updates,
                 "innovation_nis_mean": None if nis is None else round(nis, 3),
+                "point_covariance_scale": round(self.point_covariance_scale, 3),
                 "step_ms": self.step_ms.summary(), "step_cpu_ms": self.step_cpu_ms.summary(),
             },
             "map": {**grid, "rejections": dict(self.grid_rejections)},

@@ -124,6 +124,8 @@ class MapperStep:
     n_corner_updates how many: their mean is 2 (two degrees of freedom) for a filter whose
     covariances are the errors it makes, less for a conservative one (docs/mapper.md, "How
     conservative the filter is, measured").
+    point_covariance_scale: the factor the step's points' covariances were scaled by
+    (:class:`ConsistencyScale`; 1 = the filter's own).
     """
 
     points: TerrainPoints
@@ -151,6 +153,42 @@ class MapperStep:
     n_edge_matched: int = 0
     innovation_nis_sum: float = 0.0
     n_corner_updates: int = 0
+    point_covariance_scale: float = 1.0
+
+
+class ConsistencyScale:
+    """The filter's measured consistency as a scale for the covariance of the points it emits
+    (docs/mapper.md, "Calibrated point covariance").
+
+    A filter whose innovation covariance is ``S = c S_true`` (its feature covariance and pixel
+    noise overstated alike) sees ``E[nu^T S^-1 nu] = tr(S^-1 S_true) = 2 / c`` on a corner's two
+    degrees of freedom, and its features' covariance is ``c`` times their errors'. So the running
+    mean ``m`` of the innovation squared gives ``1 / c = m / 2``, the factor that makes a point's
+    covariance the errors it makes: ``m`` is an exponentially weighted mean forgetting with
+    ``memory`` corner updates; the scale is 1 until it holds ``min_updates`` of them and stays in
+    ``[1 / max_factor, max_factor]``."""
+
+    def __init__(self, memory: float, min_updates: float, max_factor: float) -> None:
+        self.memory = float(memory)
+        self.min_updates = float(min_updates)
+        self.max_factor = float(max_factor)
+        self.nis_sum = 0.0
+        self.updates = 0.0
+
+    def add(self, nis_sum: float, n_updates: int) -> None:
+        """One step's corner updates: their innovation squared summed, and how many."""
+        if n_updates <= 0 or not math.isfinite(nis_sum):
+            return
+        keep = (1.0 - 1.0 / self.memory) ** n_updates
+        self.nis_sum = self.nis_sum * keep + nis_sum
+        self.updates = self.updates * keep + n_updates
+
+    @property
+    def scale(self) -> float:
+        """The factor on an emitted point's covariance, ``m / 2`` (1 before ``min_updates``)."""
+        if self.updates < self.min_updates or self.updates <= 0:
+            return 1.0
+        return min(max(self.nis_sum / self.updates / 2.0, 1.0 / self.max_factor), self.max_factor)
 
 
 def mean_innovation_squared(nis_sum: float, n_corner_updates: int) -> float | None:
@@ -305,6 +343,8 @@ class Mapper:
         self._detector_shape: tuple[int, ...] | None = None
         self._last_nav_t = np.inf  # time of the last accepted step (no drift before the first)
         self._last_nav_p = np.zeros(3)  # body position at that step
+        self.consistency = ConsistencyScale(cfg.calibration_memory_updates, cfg.calibration_min_updates,
+                                            cfg.calibration_max_factor)
         # the last step's measurements as :meth:`step` detected them (raw pixels, corners then
         # edgels; the indices of MapperStep.*_measurements), for diagnostics
         self.last_measurements_raw = np.zeros((0, 2))
@@ -550,6 +590,7 @@ class Mapper:
         S_inv = S_inverse[0][point_idx[ok]]
         innovation_nis_sum = float(np.einsum("ni,nij,nj->", nu, S_inv, nu))
         n_corner_updates = int(np.count_nonzero(ok))
+        self.consistency.add(innovation_nis_sum, n_corner_updates)
         n_edge_matched = 0
         if edge_pairs is not None and len(edge_pairs.point):
             # across the edge only (update.ekf_update_across): n^T (z - g), n^T C, n^T R_eff n
@@ -691,6 +732,7 @@ class Mapper:
             n_edge_matched=n_edge_matched,
             innovation_nis_sum=innovation_nis_sum,
             n_corner_updates=n_corner_updates,
+            point_covariance_scale=self._point_covariance_scale(),
         )
 
     # ------------------------------------------------------------------------------------------
@@ -797,7 +839,8 @@ class Mapper:
         return X, 0.5 * (cov + cov.transpose(0, 2, 1))
 
     def _emitted_points(self, t_s: float, slots: np.ndarray) -> TerrainPoints:
-        """Converged features as terrain points, with the feature's own covariance ``J P_y J^T``.
+        """Converged features as terrain points, with the feature's own covariance ``J P_y J^T``
+        scaled by the measured consistency (:class:`ConsistencyScale`).
 
         With the correlated navigation model that covariance is relative to the estimate's frame,
         and so is the map: the vehicle flies on the same estimate, so the error the navigation
@@ -808,8 +851,14 @@ class Mapper:
         if len(slots) == 0:
             return TerrainPoints.empty(t_s)
         X, cov = self._points(slots)
+        cov = cov * self._point_covariance_scale()
         finite = np.isfinite(X).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
         return TerrainPoints(t_s, X[finite], cov[finite], self.db.ids[slots][finite].copy())
+
+    def _point_covariance_scale(self) -> float:
+        """The factor on emitted points' covariances: the measured consistency's
+        (``mapper.calibrate_point_covariance``), else 1."""
+        return self.consistency.scale if self.cfg.calibrate_point_covariance else 1.0
 
     def _refused(self, nav: NavState, n_measurements: int, reason: str) -> MapperStep:
         t_s = float(nav.t_s) if np.isfinite(nav.t_s) else 0.0

@@ -234,6 +234,38 @@ def confirm_raise(
     return raised, height, variance, pending_after
 
 
+def highest_two_per_cell(cell: np.ndarray, height: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The highest and second highest of ``height`` (N,) per cell of ``cell`` (N,) in 0..k-1, each
+    (k,), -inf where a cell has fewer rows."""
+    order = np.lexsort((-height, cell))
+    c, h = cell[order], height[order]
+    first = np.ones(len(c), dtype=bool)
+    first[1:] = c[1:] != c[:-1]
+    h1 = np.full(k, -np.inf)
+    h1[c[first]] = h[first]
+    second = np.zeros(len(c), dtype=bool)
+    second[1:] = ~first[1:] & first[:-1]
+    h2 = np.full(k, -np.inf)
+    h2[c[second]] = h[second]
+    return h1, h2
+
+
+def confirm_floor(h1: np.ndarray, h2: np.ndarray, pending: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The floor each cell may take, and the bound that stays pending (docs/terrain.md, "Floors").
+
+    Per cell (K,): ``h1``, ``h2`` the highest and second highest bounds of this batch (-inf none),
+    ``pending`` the highest earlier bound not yet confirmed (-inf none). As for the points above a
+    cell (:func:`confirm_raise`), one bound alone lifts nothing: two bounds, of one frame or of two,
+    show that the terrain reaches at least the LOWER of them, so the floor is the second highest of
+    the three, and the highest stays pending. A feature whose bound holds over two frames confirms
+    itself; a wild one (a mismatched track a frame old, 5 m above flat ground) does not. (The grid
+    also takes a neighbouring cell's bound as the second: :meth:`TerrainGrid.raise_floors`.)
+    Returns (floor, pending), each (K,)."""
+    hi = np.fmax(pending, h1)
+    second = np.where(pending >= h1, h1, np.fmax(pending, h2))
+    return second, hi
+
+
 def fuse_information(
     h0: np.ndarray, v0: np.ndarray, info: np.ndarray, info_h: np.ndarray, process_noise: float
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -162,6 +162,10 @@ class TerrainGrid:
         self._key_slots = np.zeros(0, dtype=np.int64)  # pool slot of each sorted key
         self._slot_key: list[tuple[int, int]] = []
         self._alloc(0)
+        # Pending floors (docs/terrain.md, "Floors"): a bound seen once, waiting for a second. Few
+        # cells hold one, so they are a side table (pool cell indices, sorted; heights), not a layer.
+        self._pf_cells = np.zeros(0, dtype=np.int64)
+        self._pf_height = np.zeros(0)
         self._dirty: set[tuple[int, int]] = set()
         # Conservative bounds on every known height (may be stale-wide after a cell is lowered).
         self._h_lo = np.inf
@@ -411,6 +415,7 @@ class TerrainGrid:
             # The cell's own evidence replaces the floor (docs/terrain.md, "Floors"): a floor left
             # by a feature that has since converged elsewhere, or died, goes with it.
             self._f.reshape(-1)[cell_flat[changed]] = -np.inf
+            self._drop_pending_floors(cell_flat[changed])
             hc = h_new[changed]
             self._h_lo = min(self._h_lo, float(hc.min()))
             self._h_hi = max(self._h_hi, float(hc.max()))
@@ -490,6 +495,8 @@ class TerrainGrid:
         drop_floor = low < self._f.reshape(-1)[cells]
         if drop_floor.any():  # a line of sight passed below the least the terrain was to reach
             self._f.reshape(-1)[cells[drop_floor]] = -np.inf
+        if len(self._pf_cells):
+            self._drop_pending_floors(cells[low < self._pending_floors(cells)])
         cleared = np.zeros(0, dtype=np.int64)
         if under.any():
             u = cells[under]
@@ -505,6 +512,7 @@ class TerrainGrid:
                 self._w.reshape(-1)[cleared] = 0.0
                 self._p.reshape(-1)[cleared] = np.nan
                 self._f.reshape(-1)[cleared] = -np.inf
+                self._drop_pending_floors(cleared)
                 self._dirty.update(self._slot_key[int(k)] for k in np.unique(cleared // self._cells_per_tile).tolist())
         return CarveStats(rays=int(len(ends)), cells_lowered=int(np.count_nonzero(lowered)),
                           cells_passed_under=int(np.count_nonzero(under)), cells_cleared=int(len(cleared)),
@@ -512,7 +520,9 @@ class TerrainGrid:
 
     def raise_floors(self, floors: TerrainFloors) -> int:
         """Lower bounds on the terrain's height (docs/terrain.md, "Floors"): the floor of the cell
-        of each row of ``floors`` becomes at least that row's height. A floor is not evidence of
+        of each row of ``floors`` becomes at least that row's height once a second bound confirms
+        it, in the same batch or a later one (:func:`fusion.confirm_floor`: the floor rises to the
+        second highest bound; the highest waits). A floor is not evidence of
         where the surface is (the map's height and variance are untouched, nor is it published):
         it is the least the terrain there reaches, which the avoidance law keeps clear of until the
         cell's own evidence says more. A line of sight passing below it drops it (:meth:`carve`).
@@ -524,11 +534,50 @@ class TerrainGrid:
         if len(pts) == 0:
             return 0
         cells, inv = self._pool_cells(pts[:, 0], pts[:, 1])
-        high = np.full(len(cells), -np.inf)
-        np.maximum.at(high, inv, -pts[:, 2])
-        raised = high > self._f.reshape(-1)[cells]
-        self._f.reshape(-1)[cells[raised]] = high[raised]
+        h1, h2 = fusion.highest_two_per_cell(inv, -pts[:, 2], len(cells))
+        floor, pending = fusion.confirm_floor(h1, h2, self._pending_floors(cells))
+        # A bound in a neighbouring cell, of this batch or waiting, confirms too, at the lower of the
+        # two: a feature's estimate moves by a cell or more between frames while it converges.
+        first = np.zeros(len(cells), dtype=np.int64)
+        first[inv[::-1]] = np.arange(len(inv))[::-1]
+        ci, cj = self.cell_index(pts[first, 0], pts[first, 1])
+        support = np.full(len(cells), -np.inf)
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                if di == 0 and dj == 0:
+                    continue
+                keys, local = self._cells(ci + di, cj + dj)
+                slots = self._slots_of(keys)
+                flat = np.where(slots >= 0, slots * self._cells_per_tile + local, -1)
+                near = self._pending_floors(flat)
+                at = np.minimum(np.searchsorted(cells, flat), len(cells) - 1)
+                near = np.fmax(near, np.where(cells[at] == flat, h1[at], -np.inf))
+                support = np.fmax(support, near)
+        floor = np.fmax(floor, np.fmin(h1, support))
+        old = self._f.reshape(-1)[cells]
+        raised = floor > old
+        self._f.reshape(-1)[cells[raised]] = floor[raised]
+        waits = pending > np.fmax(old, floor)
+        keep = ~np.isin(self._pf_cells, cells)
+        c = np.concatenate([self._pf_cells[keep], cells[waits]])
+        h = np.concatenate([self._pf_height[keep], pending[waits]])
+        order = np.argsort(c)
+        self._pf_cells, self._pf_height = c[order], h[order]
         return int(np.count_nonzero(raised))
+
+    def _pending_floors(self, cells: np.ndarray) -> np.ndarray:
+        """The pending floor (m) of each pool cell of ``cells`` (K,), -inf none."""
+        out = np.full(len(cells), -np.inf)
+        if len(self._pf_cells):
+            i = np.minimum(np.searchsorted(self._pf_cells, cells), len(self._pf_cells) - 1)
+            hit = self._pf_cells[i] == cells
+            out[hit] = self._pf_height[i[hit]]
+        return out
+
+    def _drop_pending_floors(self, cells: np.ndarray) -> None:
+        if len(self._pf_cells) and len(cells):
+            keep = ~np.isin(self._pf_cells, cells)
+            self._pf_cells, self._pf_height = self._pf_cells[keep], self._pf_height[keep]
 
     # ---------------------------------------------------------------------------------- queries
 
@@ -714,6 +763,8 @@ class TerrainGrid:
         self._c[slot] = np.inf if tile.ceiling is None else tile.ceiling
         self._w[slot] = np.minimum(tile.count, 1).astype(np.float32) if tile.weight is None else tile.weight
         self._f[slot] = -np.inf if tile.floor is None else tile.floor
+        in_slot = self._pf_cells // self._cells_per_tile == slot
+        self._pf_cells, self._pf_height = self._pf_cells[~in_slot], self._pf_height[~in_slot]
         known = tile.count > 0
         if known.any():
             hk = tile.height[known]
@@ -724,7 +775,8 @@ class TerrainGrid:
     def memory_bytes(self) -> int:
         """Bytes held by the map: the tile pool as allocated plus the key index."""
         pool = sum(layer.nbytes for layer in self._layers())
-        return int(pool + self._keys.nbytes + self._key_slots.nbytes + 64 * len(self._slot_key))
+        side = self._pf_cells.nbytes + self._pf_height.nbytes
+        return int(pool + side + self._keys.nbytes + self._key_slots.nbytes + 64 * len(self._slot_key))
 
     def observed_area_m2(self) -> float:
         """Area (m^2) of the cells holding evidence."""
