@@ -25,6 +25,8 @@ from companion.method.terrain.tile import Tile
 _KEY_SHIFT = np.int64(1 << 32)
 _KEY_BIAS = np.int64(1 << 31)
 _COUNT_MAX = np.iinfo(np.uint32).max
+_NEIGHBOUR_DI = np.array([-1, -1, -1, 0, 0, 1, 1, 1])  # the eight neighbours of a cell
+_NEIGHBOUR_DJ = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
 
 
 def pack_key(tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
@@ -541,18 +543,12 @@ class TerrainGrid:
         first = np.zeros(len(cells), dtype=np.int64)
         first[inv[::-1]] = np.arange(len(inv))[::-1]
         ci, cj = self.cell_index(pts[first, 0], pts[first, 1])
-        support = np.full(len(cells), -np.inf)
-        for di in (-1, 0, 1):
-            for dj in (-1, 0, 1):
-                if di == 0 and dj == 0:
-                    continue
-                keys, local = self._cells(ci + di, cj + dj)
-                slots = self._slots_of(keys)
-                flat = np.where(slots >= 0, slots * self._cells_per_tile + local, -1)
-                near = self._pending_floors(flat)
-                at = np.minimum(np.searchsorted(cells, flat), len(cells) - 1)
-                near = np.fmax(near, np.where(cells[at] == flat, h1[at], -np.inf))
-                support = np.fmax(support, near)
+        keys, local = self._cells((ci + _NEIGHBOUR_DI[:, None]).ravel(), (cj + _NEIGHBOUR_DJ[:, None]).ravel())
+        slots = self._slots_of(keys)
+        flat = np.where(slots >= 0, slots * self._cells_per_tile + local, -1)  # (8 K,) -1: no tile
+        at = np.minimum(np.searchsorted(cells, flat), len(cells) - 1)
+        near = np.fmax(self._pending_floors(flat), np.where(cells[at] == flat, h1[at], -np.inf))
+        support = near.reshape(len(_NEIGHBOUR_DI), len(cells)).max(axis=0)
         floor = np.fmax(floor, np.fmin(h1, support))
         old = self._f.reshape(-1)[cells]
         raised = floor > old
