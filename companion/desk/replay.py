@@ -403,7 +403,7 @@ def run_replay(
         },
         "mapper": sums | {"n_active_end": mapper.db.n_active,
                           "innovation_nis_mean": mean_innovation_squared(nis_sum, sums["corner_updates"]),
-                          "point_covariance_scale_end": mapper.consistency.scale if mapper.cfg.calibrate_point_covariance else 1.0},
+                          "point_covariance_scale_end": mapper.point_covariance_scale},
         "nav_missing_reasons": nav_reasons,
         "reason_examples": examples,
         "warnings": plausibility(np.asarray(frame_times), np.asarray(camera_alt), np.asarray(camera_att),

@@ -732,7 +732,7 @@ class Mapper:
             n_edge_matched=n_edge_matched,
             innovation_nis_sum=innovation_nis_sum,
             n_corner_updates=n_corner_updates,
-            point_covariance_scale=self._point_covariance_scale(),
+            point_covariance_scale=self.point_covariance_scale,
         )
 
     # ------------------------------------------------------------------------------------------
@@ -851,11 +851,12 @@ class Mapper:
         if len(slots) == 0:
             return TerrainPoints.empty(t_s)
         X, cov = self._points(slots)
-        cov = cov * self._point_covariance_scale()
+        cov = cov * self.point_covariance_scale
         finite = np.isfinite(X).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
         return TerrainPoints(t_s, X[finite], cov[finite], self.db.ids[slots][finite].copy())
 
-    def _point_covariance_scale(self) -> float:
+    @property
+    def point_covariance_scale(self) -> float:
         """The factor on emitted points' covariances: the measured consistency's
         (``mapper.calibrate_point_covariance``), else 1."""
         return self.consistency.scale if self.cfg.calibrate_point_covariance else 1.0

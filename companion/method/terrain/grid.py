@@ -554,9 +554,9 @@ class TerrainGrid:
         raised = floor > old
         self._f.reshape(-1)[cells[raised]] = floor[raised]
         waits = pending > np.fmax(old, floor)
-        keep = ~np.isin(self._pf_cells, cells)
-        c = np.concatenate([self._pf_cells[keep], cells[waits]])
-        h = np.concatenate([self._pf_height[keep], pending[waits]])
+        self._drop_pending_floors(cells)
+        c = np.concatenate([self._pf_cells, cells[waits]])
+        h = np.concatenate([self._pf_height, pending[waits]])
         order = np.argsort(c)
         self._pf_cells, self._pf_height = c[order], h[order]
         return int(np.count_nonzero(raised))
