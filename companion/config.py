@@ -187,6 +187,13 @@ class TerrainConfig:
     carve_end_margin_m: float = _f(1.5, "m", 0.0, 100.0, "free-space carving stops this far (horizontally) short of the end of each line of sight, so a feature's own cell and a wall's face are never carved")
     carve_margin_m: float = _f(0.5, "m", 0.0, 100.0, "a line of sight passing this far (plus gate_sigma sigma) below a cell's height contradicts it")
     carve_rays: float = _f(3.0, "rays", 0.5, 1000.0, "frames whose lines of sight pass under a cell's height, with no point agreeing in between, that clear the cell (a phantom does not survive the next look)")
+    frame_tracking: bool = _f(True, doc="keep the map in the navigation's vertical frame: the weighted median of the residuals of new points against cells made frame_min_age_s ago or more moves the whole map (docs/terrain.md, \"The navigation's frame\"); false = a cell stays in the frame it was made in")
+    frame_min_age_s: float = _f(20.0, "s", 0.0, 1e6, "cells updated this long ago or more are the navigation's older frame; newer ones are the frame of the moment and say nothing of its drift")
+    frame_window_s: float = _f(3.0, "s", 0.01, 3600.0, "the residuals of this long are pooled into one median")
+    frame_min_points: float = _f(10.0, "points", 1.0, 1e6, "the map moves only on at least this many points' residuals")
+    frame_max_offset_m: float = _f(3.0, "m", 0.01, 1e4, "a residual larger than this is another surface, not the frame's drift")
+    frame_deadband_m: float = _f(0.05, "m", 0.0, 100.0, "the map moves only by more than this")
+    frame_republish_m: float = _f(1.0, "m", 0.0, 100.0, "every tile is published again once the map has moved by this much since the last time (a subscriber's copy lags the vehicle's frame by less; the tiles fusion changes go out as they are); 0 = at every move")
 
 
 @dataclass(frozen=True, slots=True)

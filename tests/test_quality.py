@@ -118,6 +118,25 @@ def test_every_figure_of_a_known_record_has_its_known_value():
     block = run["map"]["obstacles"]["block"]
     assert block["bias_m"] == -1.0 and block["mapped_height_m"] == 9.0 and block["mapped_fraction_of_textured"] == 0.9
     assert run["speed_flown_mps"] == 5.0 and run["complete"] is True
+    # The navigation flew this record without error: the map in its frame is the map against the truth.
+    assert run["nav_frame_error_end_m"] == 0.0 and run["map_nav_frame"] == run["map"]
+
+
+def test_the_map_in_the_navigation_frame_is_judged_against_the_truth_raised_by_its_error_at_the_end():
+    """A vehicle whose estimate ends 0.3 m above the truth holds a map 0.3 m high where it is
+    right in its own frame: the flat ground's bias in that frame is the truth's bias less 0.3 m,
+    and an obstacle's mapped height is 0.3 m less."""
+    rec, world = known_record()
+    rec.nav_alt_m = rec.truth_alt_m + 0.3
+    run = metrics.run_figures(rec, world)
+    truth, nav = run["map"], run["map_nav_frame"]
+    assert run["nav_frame_error_end_m"] == 0.3
+    assert nav["flat"]["cells"] == truth["flat"]["cells"]
+    assert nav["flat"]["bias_m"] == round(truth["flat"]["bias_m"] - 0.3, 3)
+    n_flat, n_high = 178 * 20, 10 * 20  # cells 0.3 m high: 0 in the navigation's frame; 1.5 m: 1.2
+    assert nav["flat"]["within_1m"] == truth["flat"]["within_1m"] == round((n_flat - n_high) / n_flat, 3)
+    assert nav["flat"]["rmse_m"] == round(math.sqrt(n_high * 1.2**2 / n_flat), 3)
+    assert nav["obstacles"]["block"]["mapped_height_m"] == round(truth["obstacles"]["block"]["mapped_height_m"] - 0.3, 3)
 
 
 def test_an_obstacle_never_held_has_no_warning_and_a_late_one_a_negative_one():

@@ -451,7 +451,7 @@ def test_pop_dirty_reports_changed_tiles_once():
 # ------------------------------------------------------------------------- memory and speed
 
 
-BYTES_PER_CELL = 32  # height, variance, count, disagreement, pending, ceiling, weight, floor: 4 bytes each
+BYTES_PER_CELL = 36  # height, variance, count, disagreement, pending, ceiling, weight, floor, update time: 4 bytes each
 
 
 def cover(grid, n_range, e_range, step=1.0):

@@ -400,6 +400,8 @@ def run_replay(
             "height_min_m": float(cells.height.min()) if len(cells) else None,
             "height_max_m": float(cells.height.max()) if len(cells) else None,
             "memory_bytes": grid.memory_bytes(),
+            "frame_shift_m": grid.frame_shift_m,
+            "frame_shifts": grid.frame_shifts,
         },
         "mapper": sums | {"n_active_end": mapper.db.n_active,
                           "innovation_nis_mean": mean_innovation_squared(nis_sum, sums["corner_updates"]),
@@ -578,6 +580,9 @@ def main(args: argparse.Namespace) -> int:
           f"{m['frames_unreadable']} unreadable, {m['frames_refused']} refused)"
           + (f"; mapper {fps:.1f} frames/s" if fps else ""))
     print(f"{m['converged_points']} converged points, {m['cells_mapped']} cells mapped -> {output}")
+    if m["map"]["frame_shifts"]:
+        print(f"map moved {m['map']['frame_shifts']} times to follow the navigation's vertical frame, "
+              f"{m['map']['frame_shift_m']:+.2f} m in all (docs/terrain.md, \"The navigation's frame\")")
     nis = m["mapper"]["innovation_nis_mean"]
     if nis is not None:
         print(f"filter consistency: mean innovation squared {nis:.2f} over {m['mapper']['corner_updates']} corner updates "

@@ -597,6 +597,7 @@ class Daemon:
                 "observed_area_m2": round(float(self.grid.observed_area_m2()), 1),
                 "memory_bytes": int(self.grid.memory_bytes()),
                 "cell_size_m": self.grid.cell_size_m,
+                "frame_shift_m": round(self.grid.frame_shift_m, 3), "frame_shifts": self.grid.frame_shifts,
             }
         camera_stats = getattr(self.camera, "stats", None)
         nis = mean_innovation_squared(self.innovation_nis_sum, self.corner_updates)

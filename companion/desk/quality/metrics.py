@@ -289,11 +289,13 @@ def error_stats(err: np.ndarray) -> dict[str, Any]:
 
 
 def map_figures(raster: report.MapRaster, terrain_fn: TerrainFn, obstacles: Sequence[ObstacleTruth],
-                swath_cells: np.ndarray) -> dict[str, Any]:
+                swath_cells: np.ndarray, frame_m: float = 0.0) -> dict[str, Any]:
     """The map against the truth: over flat ground (bias, RMSE, within 1 m, coverage of the flat
     cells the camera saw), per obstacle (cells of its footprint: bias and RMSE against the true top,
     mapped height as the 95th percentile of cells with >= 2 points against the textured and the true
-    height, coverage), and over every mapped cell (RMSE)."""
+    height, coverage), and over every mapped cell (RMSE). ``frame_m``: the truth raised by this much
+    first (the navigation's vertical error when the map was taken: the map in the frame the
+    vehicle flies in; docs/quality.md)."""
     out: dict[str, Any] = {"flat": error_stats([]), "obstacles": {}, "all": error_stats([])}
     if raster.shape[0] == 0 or raster.shape[1] == 0:
         for o in obstacles:
@@ -304,7 +306,7 @@ def map_figures(raster: report.MapRaster, terrain_fn: TerrainFn, obstacles: Sequ
     n, e = raster.cell_centres()
     nn, ee = np.broadcast_arrays(n, e)
     truth = terrain_fn(nn, ee)
-    err = np.where(known, raster.height - truth, np.nan)
+    err = np.where(known, raster.height - truth - frame_m, np.nan)
     out["all"] = error_stats(err[known])
     flat = flat_cells(raster, terrain_fn)
     out["flat"] = error_stats(err[known & flat])
@@ -329,10 +331,11 @@ def map_figures(raster: report.MapRaster, terrain_fn: TerrainFn, obstacles: Sequ
         stats = error_stats(err[known & foot])
         ground = report.ground_around(o.footprint_ne_m, terrain_fn)
         mh = report.mapped_height_over_footprint(raster, o.footprint_ne_m, ground_m=ground)
+        mapped_m = mh.height_m - frame_m if mh.cells else mh.height_m  # none mapped: the ground
         n_foot = int(np.count_nonzero(foot))
         stats.update(height_m=_num(o.height_m), textured_height_m=_num(o.textured_height_m),
-                     mapped_height_m=_num(mh.height_m),
-                     mapped_fraction_of_textured=_num(mh.height_m / o.textured_height_m) if o.textured_height_m > 0 else None,
+                     mapped_height_m=_num(mapped_m),
+                     mapped_fraction_of_textured=_num(mapped_m / o.textured_height_m) if o.textured_height_m > 0 else None,
                      coverage=_num(np.count_nonzero(known & foot) / n_foot) if n_foot else None)
         out["obstacles"][o.name] = stats
     return out
@@ -355,6 +358,7 @@ def run_figures(rec, world) -> dict[str, Any]:
     laps = lap_figures(rec, world.terrain_height, obstacles, law)
     done = [lap for lap in laps if lap["complete"]]
     speeds = [lap["speed_flown_mps"] for lap in done if lap["speed_flown_mps"] is not None]
+    frame_end = float(rec.nav_alt_m[-1] - rec.truth_alt_m[-1]) if len(rec.t_s) else 0.0
     return {
         "scenario": rec.scenario,
         "seed": rec.seed,
@@ -369,4 +373,7 @@ def run_figures(rec, world) -> dict[str, Any]:
         "nominal_alt_m": _num(law.nominal_alt_m, 2),
         "laps": laps,
         "map": map_figures(rec.final_map, world.terrain_height, obstacles, rec.swath_cells),
+        # The map in the navigation's frame at the end of the flight, when it was taken.
+        "nav_frame_error_end_m": _num(frame_end, 3),
+        "map_nav_frame": map_figures(rec.final_map, world.terrain_height, obstacles, rec.swath_cells, frame_end),
     }

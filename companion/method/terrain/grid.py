@@ -4,9 +4,9 @@ Storage: one pool of tile layers ``(capacity, T, T)`` (height f32, variance f32,
 the fusion state: disagreement f32 (evidence from below) and pending f32 (a higher height waiting
 for confirmation, NaN none); the free space: ceiling f32 (the lowest height a line of sight crossed
 the cell at, +inf none), evidence weight f32 and floor f32 (the least the terrain reaches, -inf
-none); 32 bytes a cell) and a sorted array of packed tile keys, so every batched
-operation is one ``searchsorted`` plus fancy indexing, and memory follows the tiles that exist
-(the area observed), never a bounding box. Fusion rules: :mod:`companion.terrain.fusion`.
+none); the time of its last height update f32 (for the navigation's frame); 36 bytes a cell) and
+a sorted array of packed tile keys, so every batched operation is one ``searchsorted`` plus fancy
+indexing, and memory follows the tiles that exist (the area observed), never a bounding box. Fusion rules: :mod:`companion.terrain.fusion`.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import numpy as np
 from companion.config import TerrainConfig
 from companion.method.messages import FreeSpaceRays, TerrainFloors, TerrainPoints
 from companion.method.terrain import fusion
+from companion.method.terrain.frame import FrameTracker
 from companion.method.terrain.tile import Tile
 
 _KEY_SHIFT = np.int64(1 << 32)
@@ -134,6 +135,8 @@ class TerrainGrid:
         carve_end_margin_m: float = 1.5,
         carve_margin_m: float = 0.5,
         carve_rays: float = 3.0,
+        frame_tracker: FrameTracker | None = None,
+        frame_republish_m: float = 1.0,
     ) -> None:
         if not (np.isfinite(cell_size_m) and cell_size_m > 0):
             raise ValueError(f"cell_size_m must be positive and finite, got {cell_size_m}")
@@ -157,6 +160,11 @@ class TerrainGrid:
         self.carve_end_margin_m = float(carve_end_margin_m)
         self.carve_margin_m = float(carve_margin_m)
         self.carve_rays = float(carve_rays)
+        # The map's vertical frame kept on the navigation's (frame.py); None: never moved.
+        self.frame = frame_tracker
+        self.frame_republish_m = float(frame_republish_m)
+        self._shift_unpublished = 0.0  # moved since every tile was last marked for publishing (m)
+        self._epoch: float | None = None  # time of the first evidence: the update layer counts from it
         t = self.tile_cells
         self._cells_per_tile = t * t
         self._n_tiles = 0
@@ -192,6 +200,9 @@ class TerrainGrid:
             carve_end_margin_m=cfg.carve_end_margin_m,
             carve_margin_m=cfg.carve_margin_m,
             carve_rays=cfg.carve_rays,
+            frame_tracker=FrameTracker(cfg.frame_min_age_s, cfg.frame_window_s, cfg.frame_min_points,
+                                       cfg.frame_max_offset_m, cfg.frame_deadband_m) if cfg.frame_tracking else None,
+            frame_republish_m=cfg.frame_republish_m,
         )
 
     # ---------------------------------------------------------------------------------- storage
@@ -206,9 +217,10 @@ class TerrainGrid:
         self._c = np.full((capacity, t, t), np.inf, dtype=np.float32)  # ceiling: free space above (m)
         self._w = np.zeros((capacity, t, t), dtype=np.float32)  # evidence weight: points' shares agreeing
         self._f = np.full((capacity, t, t), -np.inf, dtype=np.float32)  # floor: the least the terrain reaches (m)
+        self._u = np.full((capacity, t, t), -np.inf, dtype=np.float32)  # last height update (s since _epoch)
 
     def _layers(self) -> tuple[np.ndarray, ...]:
-        return (self._h, self._v, self._n, self._d, self._p, self._c, self._w, self._f)
+        return (self._h, self._v, self._n, self._d, self._p, self._c, self._w, self._f, self._u)
 
     def _grow(self, needed: int) -> None:
         cap = len(self._h)
@@ -340,9 +352,19 @@ class TerrainGrid:
         rank[batch_slots] = np.arange(len(batch_slots))
         batch_tile = rank[slots]
         pool_flat = slots * t2 + local_in_tile
+        t_s = float(points.t_s)
+        if self._epoch is None and np.isfinite(t_s):
+            self._epoch = t_s
+        now = t_s - self._epoch if self._epoch is not None else np.nan  # NaN: a batch of no time
         h0 = self._h.reshape(-1)[pool_flat]
         v0 = self._v.reshape(-1)[pool_flat]
         n0 = self._n.reshape(-1)[pool_flat]
+        if self.frame is not None and np.isfinite(now):
+            old = (n0 >= self.gate_min_count) & (self._u.reshape(-1)[pool_flat] <= now - self.frame.min_age_s)
+            shift = self.frame.update(now, hm[old] - h0[old], w[old])
+            if shift:
+                self.shift_heights(shift)
+                h0 = self._h.reshape(-1)[pool_flat]
         side = fusion.gate_side(hm, r, h0, v0, n0, self.gate_sigma, self.gate_min_count, self.below_gate_sigma)
         agree, above, below = side == 0, side > 0, side < 0
 
@@ -413,6 +435,8 @@ class TerrainGrid:
         self._d.reshape(-1)[cell_flat] = d_new
         self._p.reshape(-1)[cell_flat] = pending
         changed = update | raised
+        if np.isfinite(now):
+            self._u.reshape(-1)[cell_flat[changed]] = now
         if changed.any():
             # The cell's own evidence replaces the floor (docs/terrain.md, "Floors"): a floor left
             # by a feature that has since converged elsewhere, or died, goes with it.
@@ -514,6 +538,7 @@ class TerrainGrid:
                 self._w.reshape(-1)[cleared] = 0.0
                 self._p.reshape(-1)[cleared] = np.nan
                 self._f.reshape(-1)[cleared] = -np.inf
+                self._u.reshape(-1)[cleared] = -np.inf
                 self._drop_pending_floors(cleared)
                 self._dirty.update(self._slot_key[int(k)] for k in np.unique(cleared // self._cells_per_tile).tolist())
         return CarveStats(rays=int(len(ends)), cells_lowered=int(np.count_nonzero(lowered)),
@@ -574,6 +599,34 @@ class TerrainGrid:
         if len(self._pf_cells) and len(cells):
             keep = ~np.isin(self._pf_cells, cells)
             self._pf_cells, self._pf_height = self._pf_cells[keep], self._pf_height[keep]
+
+    @property
+    def frame_shift_m(self) -> float:
+        """How far (m, up) the map has been moved to follow the navigation's frame, 0 without
+        frame tracking (docs/terrain.md, "The navigation's frame")."""
+        return 0.0 if self.frame is None else self.frame.shift_m
+
+    @property
+    def frame_shifts(self) -> int:
+        """How many times the map has been moved to follow the navigation's frame."""
+        return 0 if self.frame is None else self.frame.shifts
+
+    def shift_heights(self, up_m: float) -> None:
+        """Move the whole map up by ``up_m`` (m): every height, pending height, ceiling and floor,
+        as one frame (docs/terrain.md, "The navigation's frame"). Variances and counts stay. Every
+        tile is marked for publishing once the moves since the last time add up to
+        ``frame_republish_m``: a subscriber's copy lags the vehicle's frame by less than that."""
+        n = self._n_tiles
+        d = np.float32(up_m)
+        for layer in (self._h, self._p, self._c, self._f):
+            layer[:n] += d  # NaN and +-inf (unknown, no bound) stay as they are
+        self._pf_height = self._pf_height + up_m
+        self._h_lo += up_m
+        self._h_hi += up_m
+        self._shift_unpublished += up_m
+        if abs(self._shift_unpublished) >= self.frame_republish_m:
+            self._dirty.update(self._slot_key)
+            self._shift_unpublished = 0.0
 
     # ---------------------------------------------------------------------------------- queries
 
@@ -759,6 +812,7 @@ class TerrainGrid:
         self._c[slot] = np.inf if tile.ceiling is None else tile.ceiling
         self._w[slot] = np.minimum(tile.count, 1).astype(np.float32) if tile.weight is None else tile.weight
         self._f[slot] = -np.inf if tile.floor is None else tile.floor
+        self._u[slot] = -np.inf  # evidence of another time: old (a frame the navigation has left)
         in_slot = self._pf_cells // self._cells_per_tile == slot
         self._pf_cells, self._pf_height = self._pf_cells[~in_slot], self._pf_height[~in_slot]
         known = tile.count > 0
