@@ -224,7 +224,9 @@ first included, and every obstacle in every lap. The code is companion/quality/m
   error at the end of the flight, when the map was taken (quality.json per run: `map` and
   `map_nav_frame`, `nav_frame_error_end_m`). The map lives in the autopilot's frame and follows it
   (docs/terrain.md, "The navigation's frame"), as the vehicle does: the first is the map a ground
-  station would compare with a survey, the second the map the law flies on.
+  station would compare with a survey, the second the map as the vehicle's frame had it at the
+  end (the law's map where the vehicle looked last; elsewhere it carries the first pass's drift
+  between places, which no map in that frame can remove).
 - **obstacle height** (lap 2): the 95th percentile of the mapped heights of the footprint cells
   holding at least two points, at the end of the second lap, over the obstacle's textured height
   (the part a texture-tracking mapper can see). The table gives the least over the obstacles.
