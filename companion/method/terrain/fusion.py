@@ -236,18 +236,9 @@ def confirm_raise(
 
 def highest_two_per_cell(cell: np.ndarray, height: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """The highest and second highest of ``height`` (N,) per cell of ``cell`` (N,) in 0..k-1, each
-    (k,), -inf where a cell has fewer rows."""
-    order = np.lexsort((-height, cell))
-    c, h = cell[order], height[order]
-    first = np.ones(len(c), dtype=bool)
-    first[1:] = c[1:] != c[:-1]
-    h1 = np.full(k, -np.inf)
-    h1[c[first]] = h[first]
-    second = np.zeros(len(c), dtype=bool)
-    second[1:] = ~first[1:] & first[:-1]
-    h2 = np.full(k, -np.inf)
-    h2[c[second]] = h[second]
-    return h1, h2
+    (k,), -inf where a cell has fewer rows (:func:`highest_two` without variances)."""
+    h1, _, h2, _ = highest_two(cell, height, np.zeros(len(height)), k)
+    return np.where(np.isnan(h1), -np.inf, h1), np.where(np.isnan(h2), -np.inf, h2)
 
 
 def confirm_floor(h1: np.ndarray, h2: np.ndarray, pending: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
