@@ -193,7 +193,6 @@ class TerrainConfig:
     frame_min_points: float = _f(10.0, "points", 1.0, 1e6, "the map moves only on at least this many points' residuals")
     frame_max_offset_m: float = _f(3.0, "m", 0.01, 1e4, "a residual larger than this is another surface, not the frame's drift")
     frame_deadband_m: float = _f(0.05, "m", 0.0, 100.0, "the map moves only by more than this")
-    frame_republish_m: float = _f(1.0, "m", 0.0, 100.0, "every tile is published again once the map has moved by this much since the last time (a subscriber's copy lags the vehicle's frame by less; the tiles fusion changes go out as they are); 0 = at every move")
 
 
 @dataclass(frozen=True, slots=True)

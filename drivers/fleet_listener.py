@@ -25,7 +25,7 @@ import numpy as np
 import zenoh
 
 from companion.config import ZenohConfig
-from drivers.zenoh_bus import KEY_ROOT, STATUS_SCHEMA
+from drivers.zenoh_bus import KEY_ROOT, STATUS_SCHEMA, map_frame_shift
 
 log = logging.getLogger("companion.fleet")
 MAX_QUEUE = 20_000
@@ -41,7 +41,7 @@ class FleetListener:
         self.ignore = set(cfg.share_ignore)
         self._q: queue.Queue = queue.Queue(MAX_QUEUE)
         self._bus = None
-        self._frames: dict[str, Any] = {}                 # source -> LocalFrame (from its status)
+        self._frames: dict[str, Any] = {}                 # source -> (LocalFrame, map frame shift m) from its status
         self._pending: dict[str, dict[tuple[int, int], Any]] = {}  # tiles of sources not placed yet
         self._placed_with: dict[str, Any] = {}            # source -> the own frame it was placed in
         self._wanted: set[str] = set()                    # sources whose map to ask for
@@ -180,13 +180,13 @@ class FleetListener:
                 continue
             self._received[(source, tile.tx, tile.ty)] = tile
             self._pending.setdefault(source, {})[(tile.tx, tile.ty)] = tile
-        for source, frame in self._frames.items():
+        for source, (frame, map_shift) in self._frames.items():
             if own_frame is None:
                 break
-            if self._placed_with.get(source) != (own_frame, frame):
+            if self._placed_with.get(source) != (own_frame, frame, map_shift):
                 north, east, up = place_cells(np.zeros(1), np.zeros(1), np.zeros(1), frame, own_frame)
-                shared.set_frame(source, (float(north[0]), float(east[0]), float(up[0])), weight)
-                self._placed_with[source] = (own_frame, frame)
+                shared.set_frame(source, (float(north[0]), float(east[0]), float(up[0]) + map_shift), weight)
+                self._placed_with[source] = (own_frame, frame, map_shift)
             for tile in self._pending.pop(source, {}).values():
                 if shared.put(source, tile):
                     applied += 1
@@ -212,11 +212,16 @@ def _tile_index(key: str) -> tuple[int, int] | None:
 
 
 def _frame_of(payload: bytes):
-    """The sender's local frame from a ``companion.status/1`` payload, None without an origin."""
+    """From a ``companion.status/1`` payload, the sender's local frame and how far its map has been
+    moved to follow its navigation's vertical frame (``map.frame_shift_m``: its tiles' heights plus
+    this are in its local frame now; 0 when absent); None without an origin."""
     from companion.method.geodesy import LocalFrame
 
     try:
         doc = json.loads(bytes(payload).decode("utf-8"))
     except (UnicodeDecodeError, ValueError):
         return None
-    return LocalFrame.from_status(doc) if isinstance(doc, dict) and doc.get("schema") == STATUS_SCHEMA else None
+    if not (isinstance(doc, dict) and doc.get("schema") == STATUS_SCHEMA):
+        return None
+    frame = LocalFrame.from_status(doc)
+    return None if frame is None else (frame, map_frame_shift(doc))

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from companion.method.geodesy import LocalFrame
+from drivers.zenoh_bus import map_frame_shift
 
 log = logging.getLogger("companion.ground.web")
 
@@ -81,7 +82,7 @@ class LiveFeed:
         self._tiles: dict[tuple[str, int, int], bytes] = {}
         self._state: dict[tuple[str, str], bytes] = {}            # (vehicle, "status" | "avoidance" | "frame")
         self._track: dict[str, list[list[float]]] = {}
-        self._frames: dict[str, Any] = {}                          # vehicle -> LocalFrame or None
+        self._frames: dict[str, Any] = {}                          # vehicle -> (LocalFrame or None, map shift m)
         self._offsets: dict[str, list[float] | None] = {}
         self._clients: set[queue.Queue] = set()
         self.counts = {"events": 0, "clients": 0, "clients_dropped": 0}
@@ -100,7 +101,7 @@ class LiveFeed:
             n += self._publish(_sse("tile", tile_event(vehicle, gmap.tiles[index])), tile=(vehicle, *index))
         if status and gmap.status is not None:
             n += self._publish(_sse("status", {"vehicle": vehicle, **_finite(gmap.status)}), state=(vehicle, "status"))
-            frame = LocalFrame.from_status(gmap.status)
+            frame = (LocalFrame.from_status(gmap.status), map_frame_shift(gmap.status))
             if frame != self._frames.get(vehicle):
                 self._frames[vehicle] = frame
                 n += self._place()
@@ -115,19 +116,24 @@ class LiveFeed:
         companion/method/geodesy.py). The page draws a vehicle's tiles, track and position shifted by
         it: a translation, exact at the origins and within centimetres over a few kilometres (the
         two tangent planes turn by distance / Earth radius). None (not drawn) until both origins
-        are known; the first vehicle is at zero whatever its origin. Publishes what changed."""
+        are known; the first vehicle is at zero whatever its origin. ``up`` raises the vehicle's
+        tile heights only, and includes its map's shift (``map.frame_shift_m`` in its status: its
+        tiles are in its map's own frame), so every vehicle's tiles are drawn in the first
+        vehicle's navigation frame of the moment. Publishes what changed."""
         from companion.method.geodesy import place_cells
 
         ref = self._order[0]
+        ref_frame = self._frames.get(ref, (None, 0.0))[0]
         n = 0
         for vehicle in self._order:
+            frame, shift = self._frames.get(vehicle, (None, 0.0))
             if vehicle == ref:
-                offset = [0.0, 0.0, 0.0]
-            elif self._frames.get(vehicle) is None or self._frames.get(ref) is None:
+                offset = [0.0, 0.0, round(shift, 3)]
+            elif frame is None or ref_frame is None:
                 offset = None
             else:
-                north, east, up = place_cells(np.zeros(1), np.zeros(1), np.zeros(1), self._frames[vehicle], self._frames[ref])
-                offset = [round(float(north[0]), 3), round(float(east[0]), 3), round(float(up[0]), 3)]
+                north, east, up = place_cells(np.zeros(1), np.zeros(1), np.zeros(1), frame, ref_frame)
+                offset = [round(float(north[0]), 3), round(float(east[0]), 3), round(float(up[0]) + shift, 3)]
             if vehicle not in self._offsets or self._offsets[vehicle] != offset:
                 self._offsets[vehicle] = offset
                 n += self._publish(_sse("frame", {"vehicle": vehicle, "offset_m": offset, "reference": ref}), state=(vehicle, "frame"))

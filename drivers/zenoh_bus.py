@@ -208,6 +208,15 @@ def _jsonable(value: Any, where: str) -> Any:
     raise TypeError(f"{where}: {type(value).__name__} is not JSON-serialisable")
 
 
+def map_frame_shift(status: Mapping[str, Any]) -> float:
+    """How far (m, up) a vehicle's map has moved to follow its navigation's vertical frame, from its
+    ``companion.status/1`` document (``map.frame_shift_m``): its tiles are in its map's own frame,
+    and their heights plus this are in its navigation's frame now. 0 when absent or not finite."""
+    m = status.get("map")
+    shift = m.get("frame_shift_m", 0.0) if isinstance(m, Mapping) else 0.0
+    return float(shift) if isinstance(shift, (int, float)) and math.isfinite(shift) else 0.0
+
+
 def json_payload(schema: str, vehicle: str, seq: int, body: Mapping[str, Any]) -> bytes:
     """UTF-8 JSON of ``body`` inside the envelope ``schema``, ``vehicle``, ``seq``, ``time_unix_s``."""
     if not isinstance(body, Mapping):
@@ -496,13 +505,15 @@ class ZenohBus:
         """Publish the tiles a terrain grid changed since the last call (``grid.pop_dirty()``).
 
         ``grid`` is a ``companion.method.terrain.grid.TerrainGrid`` (duck-typed: ``pop_dirty()`` and
-        ``tile(key)``); call it from the thread that owns the grid. Returns the tiles published.
+        ``tile(key, in_map_frame=True)``: heights in the map's own frame, which the status's
+        ``map.frame_shift_m`` takes to the vehicle's navigation frame); call it from the thread that
+        owns the grid. Returns the tiles published.
         """
         from companion.method.terrain.codec import encode_tile  # the bus itself stays codec-agnostic
 
         n = 0
         for key in grid.pop_dirty():
-            self.publish_tile(key[0], key[1], encode_tile(grid.tile(key)))
+            self.publish_tile(key[0], key[1], encode_tile(grid.tile(key, in_map_frame=True)))
             n += 1
         return n
 

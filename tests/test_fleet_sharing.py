@@ -153,3 +153,43 @@ def test_another_vehicle_s_deltas_rebuild_its_tiles_and_a_missed_one_is_asked_fo
             assert v2.stats().published_deltas == 2
         finally:
             host.close()
+
+
+def test_another_vehicle_s_map_frame_offset_from_its_status_raises_its_tiles_without_new_ones():
+    """A vehicle publishes its tiles in its map's own frame and, in its status, how far the map has
+    moved to follow its navigation (``map.frame_shift_m``): its heights reach this vehicle's law
+    raised by that, and a new offset needs no tile sent again."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    own = LocalFrame(ORIGIN["lat_deg"], ORIGIN["lon_deg"], ORIGIN["alt_m"])
+
+    def status_with_shift(bus, shift_m: float) -> None:
+        bus.publish_status({"frame": {"axes": "NED", "projection": "ardupilot", "origin": ORIGIN},
+                            "map": {"frame_shift_m": shift_m}})
+
+    with ZenohBus(cfg(listen=(ep,), vehicle_name="v2")) as v2:
+        host = ZenohBus(cfg(connect=(ep,), vehicle_name="v1"))
+        host.open()
+        listener = FleetListener(cfg(connect=(ep,), vehicle_name="v1", share_from=("v2",))).open(host)
+        try:
+            shared = SharedEvidence("v1", 1.0, T)
+            v2.publish_tile(0, 0, encode_tile(wall(0, 0, 9.0)))
+
+            def height() -> float:
+                return float(shared.lookup("v2", np.array([10]), np.array([3]))[0][0]) if shared.sources else float("nan")
+
+            deadline = time.monotonic() + 10
+            while not height() == pytest.approx(10.5) and time.monotonic() < deadline:
+                status_with_shift(v2, 1.5)
+                listener.drain(shared, own)
+                time.sleep(0.1)
+            assert height() == pytest.approx(10.5, abs=1e-4)
+            applied = listener.counts["tiles_applied"]
+            deadline = time.monotonic() + 10
+            while not height() == pytest.approx(8.7) and time.monotonic() < deadline:
+                status_with_shift(v2, -0.3)
+                listener.drain(shared, own)
+                time.sleep(0.1)
+            assert height() == pytest.approx(8.7, abs=1e-4)
+            assert listener.counts["tiles_applied"] == applied  # no tile came again: the offset moved them
+        finally:
+            host.close()

@@ -107,7 +107,7 @@ def test_one_wild_bound_lifts_no_floor_and_a_second_confirms_only_the_lower():
     assert bounds(grid, 10.5)[1] == pytest.approx(1.0)
     grid.carve(one_ray((14.0, 0.5, 0.0)))  # ~3.2 m over the cell: below the pending 5 m, above the floor
     assert bounds(grid, 10.5)[1] == pytest.approx(1.0)
-    assert grid.raise_floors(TerrainFloors(0.2, np.array([[10.5, 0.5, -4.5]]))) == 0  # 5 m is gone: 4.5 m waits
+    assert grid.raise_floors(TerrainFloors(0.2, np.array([[10.5, 0.5, -4.5]]))) == 0  # 5 m is gone; 4.5 m is above the line of sight
     assert bounds(grid, 10.5)[1] == pytest.approx(1.0)
     # A feature whose bound holds over two frames confirms itself.
     other = TerrainFloors(0.3, np.array([[30.5, 0.5, -7.0]]))
@@ -121,6 +121,55 @@ def test_one_wild_bound_lifts_no_floor_and_a_second_confirms_only_the_lower():
     assert grid.raise_floors(TerrainFloors(0.6, np.array([[60.5, 0.5, -6.0], [62.5, 0.5, -6.0]]))) == 0
     assert grid.raise_floors(TerrainFloors(0.7, np.array([[70.5, 0.5, -6.0], [70.5, 1.5, -4.0]]))) == 2
     assert bounds(grid, 70.5)[1] == pytest.approx(4.0) and bounds(grid, 70.5, 1.5)[1] == pytest.approx(4.0)
+
+
+def test_a_bound_above_a_line_of_sight_already_seen_lifts_no_floor_in_either_order():
+    """A line of sight crossed the cell at ~3.2 m: the terrain there is lower. Two bounds at 5 m
+    lift nothing and do not wait, whether they come after the line of sight (refused) or before it
+    (dropped by it); bounds within ``carve_margin_m`` of it, or in a cell no line of sight crossed,
+    are floors as before."""
+    ray = one_ray((14.0, 0.5, 0.0))  # over north 10.5 at 15 (1 - 11 / 14) = 3.2 m at the lowest
+    five = TerrainFloors(0.0, np.array([[10.5, 0.5, -5.0], [10.6, 0.4, -5.0]]))
+    after = TerrainGrid(carve_margin_m=0.5)
+    after.carve(ray)
+    ceiling = bounds(after, 10.5)[0]
+    assert 3.0 < ceiling < 3.4
+    assert after.raise_floors(five) == 0 and bounds(after, 10.5)[1] == -np.inf
+    assert after.raise_floors(TerrainFloors(0.1, np.array([[10.5, 0.5, -5.0]]))) == 0  # nothing waited
+    before = TerrainGrid(carve_margin_m=0.5)
+    assert before.raise_floors(five) == 1
+    assert before.carve(ray).floors_dropped == 1 and bounds(before, 10.5)[1] == -np.inf
+    near = -(ceiling + 0.4)
+    assert after.raise_floors(TerrainFloors(0.2, np.array([[10.5, 0.5, near], [10.6, 0.4, near]]))) == 1
+    assert bounds(after, 10.5)[1] == pytest.approx(-near)
+    assert after.raise_floors(TerrainFloors(0.3, np.array([[30.5, 0.5, -5.0], [30.6, 0.4, -5.0]]))) == 1
+    assert bounds(after, 30.5)[1] == pytest.approx(5.0)
+
+
+def test_a_floor_follows_the_feature_that_set_it_and_stays_when_the_feature_dies():
+    """A young feature's estimate slides along its line of sight while it converges: its bound of
+    a frame ago, in the cell it has since left, is no longer its word, and the floor it set there
+    goes. Another feature's floor stays; a feature that stops reporting (died) leaves its floor."""
+    grid = TerrainGrid()
+
+    def bounds_of(t, rows):
+        return TerrainFloors(t, np.array([r[1:] for r in rows], float), np.array([r[0] for r in rows]))
+
+    # Feature 7 at 5 m in north 10.5 over two frames: confirmed. Feature 8 at 4 m in north 40.5.
+    grid.raise_floors(bounds_of(0.0, [(7, 10.5, 0.5, -5.0), (8, 40.5, 0.5, -4.0)]))
+    assert grid.raise_floors(bounds_of(0.1, [(7, 10.5, 0.5, -5.0), (8, 40.5, 0.5, -4.0)])) == 2
+    assert bounds(grid, 10.5)[1] == pytest.approx(5.0) and bounds(grid, 40.5)[1] == pytest.approx(4.0)
+    # Feature 7 now bounds north 13.5 at 3 m (it slid): 10.5 loses its floor; 8, in its cell, keeps.
+    grid.raise_floors(bounds_of(0.2, [(7, 13.5, 0.5, -3.0), (8, 40.5, 0.5, -3.5)]))
+    assert bounds(grid, 10.5)[1] == -np.inf and bounds(grid, 40.5)[1] == pytest.approx(4.0)
+    # Feature 8 dies (reports no more); feature 9 elsewhere: 8's floor stays.
+    grid.raise_floors(bounds_of(0.3, [(9, 70.5, 0.5, -2.0)]))
+    assert bounds(grid, 40.5)[1] == pytest.approx(4.0)
+    # Without feature ids (an older producer) floors are kept as they were.
+    plain = TerrainGrid()
+    plain.raise_floors(TerrainFloors(0.0, np.array([[10.5, 0.5, -5.0], [10.6, 0.4, -5.0]])))
+    plain.raise_floors(TerrainFloors(0.1, np.array([[13.5, 0.5, -3.0], [13.6, 0.4, -3.0]])))
+    assert bounds(plain, 10.5)[1] == pytest.approx(5.0)
 
 
 def test_confirm_floor_is_the_second_highest_of_the_pending_and_the_batch():

@@ -199,7 +199,9 @@ def test_the_page_shows_a_fleet_through_a_router_each_vehicle_in_its_place(brows
     """Two vehicles whose EKF origins are 300 m apart publish through ``companion router``; a ground
     station following every vehicle (``--all-vehicles``) serves the page. Each vehicle's tiles are
     in its own frame: the page places the second vehicle's, from the two origins in their statuses,
-    300 m north of the first's, and lists both; the second is drawn only once its origin is known."""
+    300 m north of the first's, and lists both; the second is drawn only once its origin is known.
+    Each map has moved to follow its vehicle's navigation (``map.frame_shift_m`` in the status,
+    -0.5 m and +1.5 m): the tiles, published in each map's own frame, are drawn raised by it."""
     from benchmarks.fleet_bench import Router
 
     router = Router()
@@ -213,13 +215,15 @@ def test_the_page_shows_a_fleet_through_a_router_each_vehicle_in_its_place(brows
                 assert "not placed yet" in page.text_content("#fleet")
                 deadline = time.monotonic() + 15
                 while page.evaluate("companionMap.offset('v2')") is None and time.monotonic() < deadline:
-                    v1.publish_status({**STATUS, "frame": {"axes": "NED", "origin": ORIGIN, "projection": "ardupilot"}})
+                    v1.publish_status({**STATUS, "frame": {"axes": "NED", "origin": ORIGIN, "projection": "ardupilot"},
+                                       "map": {"frame_shift_m": -0.5}})
                     v2.publish_status({**STATUS, "frame": {"axes": "NED", "projection": "ardupilot",
-                                                           "origin": {**ORIGIN, "lat_deg": ORIGIN["lat_deg"] + NORTH_300_M}}})
+                                                           "origin": {**ORIGIN, "lat_deg": ORIGIN["lat_deg"] + NORTH_300_M}},
+                                       "map": {"frame_shift_m": 1.5}})
                     time.sleep(0.1)
                 offset = page.evaluate("companionMap.offset('v2')")
-                assert offset[0] == pytest.approx(300.0, abs=1.0) and abs(offset[1]) < 0.01 and abs(offset[2]) < 0.05
-                page.wait_for_function("companionMap.range()[1] >= 10", timeout=5_000)
+                assert offset[0] == pytest.approx(300.0, abs=1.0) and abs(offset[1]) < 0.01 and abs(offset[2] - 1.5) < 0.05
+                page.wait_for_function("companionMap.offset('v1')[2] === -0.5 && companionMap.range()[1] >= 11", timeout=5_000)
 
                 def colour(north, east):
                     return np.array(page.evaluate(f"companionMap.colourAt({north}, {east})"), float)
@@ -227,7 +231,7 @@ def test_the_page_shows_a_fleet_through_a_router_each_vehicle_in_its_place(brows
                 def expected(h):
                     return np.array(page.evaluate(f"companionMap.heightColour({h})"), float)
 
-                assert np.abs(colour(0.5 * SIDE, 0.5 * SIDE) - expected(0.0)).max() <= 2           # v1's tile at home
+                assert np.abs(colour(0.5 * SIDE, 0.5 * SIDE) - expected(-0.5)).max() <= 2          # v1's tile at home
                 assert np.abs(colour(offset[0] + 0.5 * SIDE, 0.5 * SIDE) - expected(10.0 + offset[2])).max() <= 2  # v2's, 300 m north
                 assert (colour(150.0, 0.5 * SIDE) < 60).all()                                         # nothing between
                 assert page.evaluate("companionMap.vehicles()") == ["v1", "v2"]

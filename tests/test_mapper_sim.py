@@ -150,7 +150,7 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
     mapped: dict[int, int] = {}
     died: dict[int, int] = {}
     rel_err_at_age: dict[int, dict[int, float]] = {age: {} for age in CURVE_AGES}
-    n_matched = n_wrong = 0
+    n_matched = n_wrong = n_floor_rows = 0
     misassociated: set[int] = set()
     for k, (nav, z, idx, p_c_true) in enumerate(frames):
         for i in idx.tolist():
@@ -176,6 +176,11 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
             if fid not in misassociated:
                 mapped.setdefault(truth_of[fid], k)
         snap = mapper.features()
+        # Each floor row is the bound of a live feature not yet converged, at its estimate.
+        unconverged = {fid: X for fid, X, c in zip(snap.ids.tolist(), snap.positions_ned_m, snap.converged) if not c}
+        for fid, row in zip(step.floors.feature_ids.tolist() if len(step.floors) else [], step.floors.positions_ned_m):
+            assert fid in unconverged and np.allclose(row[:2], unconverged[fid][:2], atol=1e-6)
+            n_floor_rows += 1
         for fid, X in zip(snap.ids.tolist(), snap.positions_ned_m):
             age = k - born[fid]
             if age in rel_err_at_age:
@@ -206,6 +211,7 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
         f"rel_err_age{age}": np.array([rel_err_at_age[age].get(f, np.nan) for f in ids]) for age in CURVE_AGES
     }
     return curves | {
+        "floor_rows": np.array([n_floor_rows]),
         "converged": np.array([f in final for f in ids], dtype=bool),
         "lifetime": np.array([died.get(f, len(frames)) - born[f] for f in ids]),
         "frames_to_converge": np.array([first_converged[f] - born[f] if f in first_converged else np.inf for f in ids]),
@@ -351,6 +357,7 @@ def test_inverse_depth_maps_the_scene_accurately_and_consistently():
     # each frame's navigation error, so they are not independent and the chi-square bounds for n
     # independent points (printed) are too narrow for them; a 3.0 +- 25% band is used instead.
     assert 2.25 < f["nees_mean"] < 3.75
+    assert int(monte_carlo()["inverse_depth"]["floor_rows"].sum()) > 0  # the floors were checked (in the run)
 
 
 def test_inverse_depth_converges_faster_than_cartesian_where_the_prior_is_wrong():

@@ -134,21 +134,23 @@ def test_cells_made_within_the_minimum_age_say_nothing_of_the_frame():
     assert grid.frame_shifts == 0 and grid.frame_shift_m == 0.0
 
 
-def test_the_shift_moves_every_height_and_bound_of_the_map_and_republishes_every_tile_each_metre():
+def test_the_shift_moves_every_height_and_bound_in_the_navigation_frame_and_no_tile_of_the_map_frame():
+    """Moving the map is its offset to the navigation's frame: every height and bound read in the
+    navigation's frame moves by it (queries, tiles); the map's own frame, which is published, stays
+    bit for bit, so no tile goes out again; evidence fused after the move lands where it was seen."""
     grid = TerrainGrid.from_config(TerrainConfig())
     grid.insert(ground(0.0, 0.0, np.random.default_rng(5), size=40))
     grid.insert(ground(0.5, 0.0, np.random.default_rng(6), size=40))
     grid.carve(FreeSpaceRays(1.0, np.array([0.5, 60.5, -20.0]), np.array([[0.5, 100.5, -1.0]])))
     grid.raise_floors(TerrainFloors(1.0, np.array([[5.5, 70.5, -3.0], [5.6, 70.4, -3.5], [8.5, 80.5, -4.0]])))
     before = {k: grid.tile(k, with_disagreement=True) for k in grid.keys()}
-    pending_floors = grid._pf_height.copy()
+    published = {k: grid.tile(k, in_map_frame=True) for k in grid.keys()}
+    corridor = grid.corridor((0.5, 0.5), (0.0, 1.0), 90.0, 10.0)
     grid.pop_dirty()
-    grid.shift_heights(-0.15)  # less than frame_republish_m (1 m): moved, not yet republished
-    assert grid.pop_dirty() == []
-    grid.shift_heights(-0.9)  # 1.05 m since the last time: every tile goes out again
-    assert grid.pop_dirty() == grid.keys()
+    grid.shift_heights(-0.15)
+    grid.shift_heights(-0.9)
     grid.shift_heights(0.1)
-    assert grid.pop_dirty() == []
+    assert grid.pop_dirty() == [] and abs(grid.frame_shift_m + 0.95) < 1e-12 and grid.frame_shifts == 3
     for k, old in before.items():
         new = grid.tile(k, with_disagreement=True)
         for name in ("height", "pending", "ceiling", "floor"):
@@ -157,9 +159,26 @@ def test_the_shift_moves_every_height_and_bound_of_the_map_and_republishes_every
             assert np.array_equal(finite, np.isfinite(b)) and np.array_equal(a[~finite], b[~finite], equal_nan=True)
             assert np.allclose(b[finite], a[finite] - 0.95, atol=1e-5)
         assert np.array_equal(old.variance, new.variance) and np.array_equal(old.count, new.count)
+        assert grid.tile(k, in_map_frame=True).same_as(published[k])
     assert np.isfinite([t.ceiling for t in before.values()]).any()
     assert np.isfinite([t.floor for t in before.values()]).any()
-    assert len(pending_floors) and np.allclose(grid._pf_height, pending_floors - 0.95)
+    moved = grid.corridor((0.5, 0.5), (0.0, 1.0), 90.0, 10.0)
+    for name in ("height_m", "ceiling_m", "floor_m"):
+        a, b = getattr(corridor, name), getattr(moved, name)
+        finite = np.isfinite(a)
+        assert finite.any() and np.array_equal(finite, np.isfinite(b)) and np.allclose(b[finite], a[finite] - 0.95)
+    # The pending floor of (8.5, 80.5) at 4 m, confirmed after the move by a bound at 4.2 m seen now.
+    grid.raise_floors(TerrainFloors(2.0, np.array([[8.5, 80.5, -4.2]])))
+    assert abs(grid.corridor((8.5, 80.5), (1.0, 0.0), 0.0, 0.1).floor_m[0] - (4.0 - 0.95)) < 1e-5
+    # A roof seen at 6 m after the move is at 6 m in the navigation's frame, 6.95 m in the map's.
+    rng = np.random.default_rng(11)
+    pts = np.column_stack([rng.uniform(30.2, 30.8, 20), rng.uniform(40.2, 40.8, 20), np.full(20, -6.0)])
+    grid.insert(TerrainPoints(3.0, pts, np.tile(np.diag([0.01, 0.01, 0.04]), (20, 1, 1))))
+    grid.insert(TerrainPoints(3.1, pts, np.tile(np.diag([0.01, 0.01, 0.04]), (20, 1, 1))))
+    h, _, _ = grid.height_at(30.5, 40.5)
+    key = tuple(int(v) for v in np.floor(np.array([30.5, 40.5]) / (grid.cell_size_m * grid.tile_cells)))
+    in_map = grid.tile(key, in_map_frame=True).height[30 % 32, 40 % 32]
+    assert abs(float(h) - 6.0) < 1e-4 and abs(float(in_map) - 6.95) < 1e-4
 
 
 def test_a_map_loaded_from_a_snapshot_is_old_and_follows_the_frame_of_the_new_flight(tmp_path):

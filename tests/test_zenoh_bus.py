@@ -253,6 +253,44 @@ def test_grid_changes_are_published_once(linked):
         got[BusKeys(VEHICLE).parse_tile(key)] = decode_tile(payload)
     assert sorted(got) == [(-1, 2), (0, 0)]
     assert got[(-1, 2)].same_as(grid.tile((-1, 2)))
+    # The map moved to follow the navigation's frame: published tiles are in the map's own frame,
+    # which did not move, so nothing goes out; the navigation's heights are theirs plus the shift.
+    grid.shift_heights(0.7)
+    assert bus.publish_grid_changes(grid) == 0
+    assert got[(-1, 2)].same_as(grid.tile((-1, 2), in_map_frame=True))
+    assert np.allclose(grid.tile((-1, 2)).height, got[(-1, 2)].height + 0.7)
+
+
+def test_the_daemon_publishes_its_map_in_the_map_s_own_frame_and_the_shift_in_its_status(linked, tmp_path):
+    """The service's publisher: tiles in the map's own frame, so the map moving to follow the
+    navigation sends nothing; the status carries the shift that takes them to the vehicle's frame."""
+    import numpy as np
+
+    from companion.config import CompanionConfig
+    from companion.config import replace as replace_config
+    from companion.method.messages import TerrainPoints
+    from companion.method.terrain.codec import apply_update
+    from companion.service.daemon import Daemon
+
+    bus, ground = linked
+    inbox = Inbox(ground, "companion/v1/terrain/tile/*/*")
+    link_up(bus, Inbox(ground, "companion/v1/status"))
+    daemon = Daemon(replace_config(CompanionConfig(), **{"zenoh.enabled": False, "persistence.directory": str(tmp_path)}))
+    daemon.bus = bus
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(5, 15, 400), rng.uniform(5, 15, 400), rng.normal(-2.0, 0.1, 400)])
+    daemon.grid.insert(TerrainPoints(0.0, pts, np.tile(np.diag([0.01, 0.01, 0.01]), (400, 1, 1))))
+    assert daemon.publish_changed_tiles() == 1
+    _, key, payload, _ = inbox.get(timeout=5)
+    sent = apply_update(None, payload)
+    daemon.grid.shift_heights(1.25)
+    assert daemon.publish_changed_tiles() == 0
+    assert sent.same_as(daemon.grid.tile((0, 0), in_map_frame=True))
+    status = daemon.status()["map"]
+    assert status["frame_shift_m"] == 1.25 and status["frame_shifts"] == 1
+    known = sent.count > 0
+    assert np.allclose(sent.height[known] + status["frame_shift_m"], daemon.grid.tile((0, 0)).height[known])
+    assert not inbox.drain()
 
 
 def test_tile_arguments_are_checked(linked):

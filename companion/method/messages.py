@@ -116,10 +116,12 @@ class FreeSpaceRays:
 class TerrainFloors:
     """Lower bounds on the terrain's height, handed from the mapper to the terrain map (docs/mapper.md,
     "Bounds of an unconverged feature"): the terrain in the cell of each ``positions_ned_m`` (K, 3)
-    row's north and east reaches at least that row's height (``-down``)."""
+    row's north and east reaches at least that row's height (``-down``); ``feature_ids`` (K,), the
+    feature each row bounds, lets the map move a floor with its feature (docs/terrain.md, "Floors")."""
 
     t_s: float
     positions_ned_m: np.ndarray
+    feature_ids: np.ndarray | None = None
 
     @classmethod
     def empty(cls, t_s: float = 0.0) -> "TerrainFloors":

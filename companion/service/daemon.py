@@ -564,16 +564,22 @@ class Daemon:
         """Every ``zenoh.tile_interval_s``, the tiles that changed since the last round (a tile
         that changed several times goes out once, as it is now); deflated unless
         ``zenoh.tile_deflate`` is off (docs/zenoh.md, "Bandwidth")."""
-        deflate = self.cfg.zenoh.tile_deflate
         while not self._stop.is_set():
             await self.clock.sleep(self.cfg.zenoh.tile_interval_s)
-            if self.bus is None:
-                continue
-            with self.grid_lock:
-                changed = [(k, self.grid.tile(k)) for k in self.grid.pop_dirty()]
-            for (tx, ty), tile in changed:
-                whole, live = self.tile_payloads.encode(tile, deflate)
-                self.bus.publish_tile(tx, ty, whole, live)
+            if self.bus is not None:
+                self.publish_changed_tiles()
+
+    def publish_changed_tiles(self) -> int:
+        """Publish the tiles the map changed since the last call, in the map's own frame: moving
+        the map to follow the navigation changes no tile there, and the status's
+        ``map.frame_shift_m`` takes their heights to the vehicle's frame (docs/zenoh.md). Returns
+        the tiles published."""
+        with self.grid_lock:
+            changed = [(k, self.grid.tile(k, in_map_frame=True)) for k in self.grid.pop_dirty()]
+        for (tx, ty), tile in changed:
+            whole, live = self.tile_payloads.encode(tile, self.cfg.zenoh.tile_deflate)
+            self.bus.publish_tile(tx, ty, whole, live)
+        return len(changed)
 
     def status(self) -> dict[str, Any]:
         now = self.clock.now()

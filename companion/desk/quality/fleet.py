@@ -41,9 +41,9 @@ def fly_pair(job: tuple[str, int, int, tuple]) -> dict[str, Any]:
             raise RuntimeError(f"the scout mapped nothing ({scout.problem or 'no frame'})")
         grid = grids[0]
         shared = SharedEvidence("vehicle", grid.cell_size_m, grid.tile_cells)
-        shared.set_frame("scout", (0.0, 0.0, 0.0))
+        shared.set_frame("scout", (0.0, 0.0, grid.frame_shift_m))  # as published: the map's frame, its offset
         for key in grid.keys():
-            shared.put("scout", grid.tile(key))
+            shared.put("scout", grid.tile(key, in_map_frame=True))
         cfg = flight_config(world, scenario, "inverse_depth", seed, CAMERA_RATE_HZ, overrides)
         alone = metrics.run_figures(engine.fly(scenario, cfg, 1, world=world), world)
         with_scout = metrics.run_figures(engine.fly(scenario, cfg, 1, world=world,

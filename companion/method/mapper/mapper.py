@@ -644,7 +644,7 @@ class Mapper:
         newly = ~db.converged[updated] & ready & (depth_sigma < limit)
         bounding = ~db.converged[updated] & ~newly & ready & (depth_sigma < cfg.floor_max_depth_sigma_m)
         floors = self._floors(nav.t_s, y_upd[bounding], P_upd[bounding], R_upd[bounding], origin_upd[bounding],
-                              X_upd[bounding])
+                              X_upd[bounding], db.ids[updated[bounding]])
         if np.count_nonzero(newly):
             db.converged[updated[newly]] = True
             emitted.append(self._emitted_points(nav.t_s, updated[newly]))
@@ -817,7 +817,7 @@ class Mapper:
         return FreeSpaceRays(t_s, np.asarray(camera_ned, dtype=float).copy(), ends[good])
 
     def _floors(self, t_s: float, y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin: np.ndarray,
-                X: np.ndarray | None = None) -> TerrainFloors:
+                X: np.ndarray | None = None, ids: np.ndarray | None = None) -> TerrainFloors:
         """Lower bounds on the terrain's height (docs/mapper.md, "Bounds of an unconverged
         feature"): each feature (rows of y, P, R_ref, origin) lies on the terrain, so the terrain
         in its cell reaches at least the lower of its estimate and its point ``floor_sigma`` sigma
@@ -830,7 +830,8 @@ class Mapper:
         far = self.model.point_at_sigma(y, P, R_ref, origin, -self.cfg.floor_sigma)
         down = np.fmax(X[:, 2], far[:, 2])  # NED: the lower of the two (NaN far: at infinity, no bound)
         keep = np.isfinite(X).all(axis=1) & np.isfinite(far[:, 2])
-        return TerrainFloors(t_s, np.column_stack([X[keep, 0], X[keep, 1], down[keep]]))
+        return TerrainFloors(t_s, np.column_stack([X[keep, 0], X[keep, 1], down[keep]]),
+                             None if ids is None else np.asarray(ids)[keep].copy())
 
     def _points(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position (K, 3) and its covariance ``J P_y J^T`` (K, 3, 3) of the features in ``slots``."""

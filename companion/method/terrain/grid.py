@@ -136,7 +136,6 @@ class TerrainGrid:
         carve_margin_m: float = 0.5,
         carve_rays: float = 3.0,
         frame_tracker: FrameTracker | None = None,
-        frame_republish_m: float = 1.0,
     ) -> None:
         if not (np.isfinite(cell_size_m) and cell_size_m > 0):
             raise ValueError(f"cell_size_m must be positive and finite, got {cell_size_m}")
@@ -162,8 +161,11 @@ class TerrainGrid:
         self.carve_rays = float(carve_rays)
         # The map's vertical frame kept on the navigation's (frame.py); None: never moved.
         self.frame = frame_tracker
-        self.frame_republish_m = float(frame_republish_m)
-        self._shift_unpublished = 0.0  # moved since every tile was last marked for publishing (m)
+        # Every height is stored in the map's own frame (the frame its evidence was first fused in);
+        # the navigation's frame is that plus this offset (m, up): moving the map is one addition,
+        # and a tile changes only when its evidence does (docs/terrain.md, "The navigation's frame").
+        self._offset = 0.0
+        self._shifts = 0
         self._epoch: float | None = None  # time of the first evidence: the update layer counts from it
         t = self.tile_cells
         self._cells_per_tile = t * t
@@ -176,6 +178,9 @@ class TerrainGrid:
         # cells hold one, so they are a side table (pool cell indices, sorted; heights), not a layer.
         self._pf_cells = np.zeros(0, dtype=np.int64)
         self._pf_height = np.zeros(0)
+        # Which feature set each floor (pool cells, sorted; feature ids): a floor follows its feature.
+        self._fo_cells = np.zeros(0, dtype=np.int64)
+        self._fo_ids = np.zeros(0, dtype=np.int64)
         self._dirty: set[tuple[int, int]] = set()
         # Conservative bounds on every known height (may be stale-wide after a cell is lowered).
         self._h_lo = np.inf
@@ -202,7 +207,6 @@ class TerrainGrid:
             carve_rays=cfg.carve_rays,
             frame_tracker=FrameTracker(cfg.frame_min_age_s, cfg.frame_window_s, cfg.frame_min_points,
                                        cfg.frame_max_offset_m, cfg.frame_deadband_m) if cfg.frame_tracking else None,
-            frame_republish_m=cfg.frame_republish_m,
         )
 
     # ---------------------------------------------------------------------------------- storage
@@ -279,7 +283,8 @@ class TerrainGrid:
 
     def _gather(self, ci: np.ndarray, cj: np.ndarray, bounds: bool = False) -> tuple[np.ndarray, ...]:
         """(height, variance, count) of cells by global index; NaN / inf / 0 where no tile. With
-        ``bounds`` also (ceiling, floor, evidence weight): inf / -inf / 0 where no tile."""
+        ``bounds`` also (ceiling, floor, evidence weight): inf / -inf / 0 where no tile. Heights,
+        ceilings and floors in the navigation's frame."""
         keys, local = self._cells(ci, cj)
         slots = self._slots_of(keys)
         have = slots >= 0
@@ -290,8 +295,13 @@ class TerrainGrid:
         if not self._n_tiles:
             return tuple(np.full(len(ci), empty, dtype=dt) for _, empty, dt in layers)
         if have.all():  # every cell in a tile (a query over mapped ground): no stand-in values
-            return tuple(layer.reshape(-1)[flat].astype(dt) for layer, _, dt in layers)
-        return tuple(np.where(have, layer.reshape(-1)[flat], empty).astype(dt) for layer, empty, dt in layers)
+            out = [layer.reshape(-1)[flat].astype(dt) for layer, _, dt in layers]
+        else:
+            out = [np.where(have, layer.reshape(-1)[flat], empty).astype(dt) for layer, empty, dt in layers]
+        if self._offset:
+            for i in (0, 3, 4)[: len(out) - 2]:  # height; ceiling and floor (inf and NaN stay)
+                out[i] += self._offset
+        return tuple(out)
 
     # ----------------------------------------------------------------------------------- fusion
 
@@ -331,7 +341,7 @@ class TerrainGrid:
             return InsertStats(rejected_invalid=n_invalid, rejected_imprecise=n_imprecise)
 
         c, t2 = self.cell_size_m, self._cells_per_tile
-        height = -pos[:, 2]
+        height = -pos[:, 2] - self._offset  # in the map's frame
         var_z = np.maximum(cov[:, 2, 2], self.min_height_sigma_m**2)
         p, ci, cj, w = fusion.horizontal_spread(
             pos[:, 0], pos[:, 1], cov[:, :2, :2], c, self.spread_sigma, self.max_spread_cells
@@ -364,7 +374,7 @@ class TerrainGrid:
             shift = self.frame.update(now, hm[old] - h0[old], w[old])
             if shift:
                 self.shift_heights(shift)
-                h0 = self._h.reshape(-1)[pool_flat]
+                hm = hm - shift  # the same points, in the moved map's frame
         side = fusion.gate_side(hm, r, h0, v0, n0, self.gate_sigma, self.gate_min_count, self.below_gate_sigma)
         agree, above, below = side == 0, side > 0, side < 0
 
@@ -502,7 +512,7 @@ class TerrainGrid:
         frac = s[take] / length[ray]
         north = o[0] + frac * d_ne[ray, 0]
         east = o[1] + frac * d_ne[ray, 1]
-        alt = -o[2] + frac * (o[2] - ends[ray, 2])
+        alt = -o[2] + frac * (o[2] - ends[ray, 2]) - self._offset  # in the map's frame
         cells, inv = self._pool_cells(north, east)
         low = np.full(len(cells), np.inf)
         np.minimum.at(low, inv, alt)
@@ -552,16 +562,31 @@ class TerrainGrid:
         second highest bound; the highest waits). A floor is not evidence of
         where the surface is (the map's height and variance are untouched, nor is it published):
         it is the least the terrain there reaches, which the avoidance law keeps clear of until the
-        cell's own evidence says more. A line of sight passing below it drops it (:meth:`carve`).
-        Invalid rows (non-finite, beyond ``max_abs_coordinate_m``) are skipped. Returns the number
-        of cells whose floor rose."""
+        cell's own evidence says more. A line of sight passing below it drops it (:meth:`carve`),
+        and a bound more than ``carve_margin_m`` above the cell's ceiling (a line of sight crossed
+        it lower before) lifts nothing, nor waits. With ``floors.feature_ids`` a floor follows the
+        feature that set it: once that feature bounds another cell, the floor goes
+        (:meth:`_withdraw_left_floors`). Invalid rows (non-finite, beyond
+        ``max_abs_coordinate_m``) are skipped. Returns the number of cells whose floor rose."""
         pts = np.asarray(floors.positions_ned_m, dtype=np.float64).reshape(-1, 3)
         good = np.isfinite(pts).all(axis=1) & (np.abs(pts) <= self.max_abs_coordinate_m).all(axis=1)
+        ids = None if floors.feature_ids is None else np.asarray(floors.feature_ids, dtype=np.int64).reshape(-1)[good]
         pts = pts[good]
         if len(pts) == 0:
             return 0
         cells, inv = self._pool_cells(pts[:, 0], pts[:, 1])
-        h1, h2 = fusion.highest_two_per_cell(inv, -pts[:, 2], len(cells))
+        if ids is not None:
+            self._withdraw_left_floors(ids, cells[inv])
+        # A line of sight already crossed the cell below the bound: the terrain there is lower (the
+        # same evidence that drops a floor in carve, seen in the other order).
+        under_ceiling = -pts[:, 2] - self._offset <= self._c.reshape(-1)[cells][inv] + self.carve_margin_m
+        if not under_ceiling.all():
+            pts = pts[under_ceiling]
+            ids = None if ids is None else ids[under_ceiling]
+            if len(pts) == 0:
+                return 0
+            cells, inv = self._pool_cells(pts[:, 0], pts[:, 1])
+        h1, h2 = fusion.highest_two_per_cell(inv, -pts[:, 2] - self._offset, len(cells))
         floor, pending = fusion.confirm_floor(h1, h2, self._pending_floors(cells))
         # A bound in a neighbouring cell, of this batch or waiting, confirms too, at the lower of the
         # two: a feature's estimate moves by a cell or more between frames while it converges.
@@ -578,6 +603,15 @@ class TerrainGrid:
         old = self._f.reshape(-1)[cells]
         raised = floor > old
         self._f.reshape(-1)[cells[raised]] = floor[raised]
+        if ids is not None and raised.any():  # the feature of each raised cell's highest bound owns it
+            order = np.lexsort((pts[:, 2], inv))  # by cell, then highest first (NED down ascending)
+            top = np.full(len(cells), -1, dtype=np.int64)
+            top[inv[order[::-1]]] = ids[order[::-1]]
+            keep = ~np.isin(self._fo_cells, cells[raised])
+            c = np.concatenate([self._fo_cells[keep], cells[raised]])
+            o = np.concatenate([self._fo_ids[keep], top[raised]])
+            order = np.argsort(c)
+            self._fo_cells, self._fo_ids = c[order], o[order]
         waits = pending > np.fmax(old, floor)
         self._drop_pending_floors(cells)
         c = np.concatenate([self._pf_cells, cells[waits]])
@@ -585,6 +619,26 @@ class TerrainGrid:
         order = np.argsort(c)
         self._pf_cells, self._pf_height = c[order], h[order]
         return int(np.count_nonzero(raised))
+
+    def _withdraw_left_floors(self, ids: np.ndarray, cells_now: np.ndarray) -> None:
+        """A feature bounding another cell now (``ids`` (K,) with their cells ``cells_now``) no longer
+        says anything of the cell it raised a floor in before: that floor goes (docs/terrain.md,
+        "Floors"). Entries whose floor has gone otherwise are forgotten."""
+        if not len(self._fo_cells):
+            return
+        alive = np.isfinite(self._f.reshape(-1)[self._fo_cells])
+        self._fo_cells, self._fo_ids = self._fo_cells[alive], self._fo_ids[alive]
+        if not len(self._fo_cells):
+            return
+        order = np.argsort(ids)
+        sid, scell = ids[order], cells_now[order]
+        at = np.minimum(np.searchsorted(sid, self._fo_ids), len(sid) - 1)
+        reporting = sid[at] == self._fo_ids
+        # a feature has one row per batch; a row in the same cell keeps the floor it owns
+        left = reporting & (scell[at] != self._fo_cells)
+        if left.any():
+            self._f.reshape(-1)[self._fo_cells[left]] = -np.inf
+            self._fo_cells, self._fo_ids = self._fo_cells[~left], self._fo_ids[~left]
 
     def _pending_floors(self, cells: np.ndarray) -> np.ndarray:
         """The pending floor (m) of each pool cell of ``cells`` (K,), -inf none."""
@@ -602,31 +656,24 @@ class TerrainGrid:
 
     @property
     def frame_shift_m(self) -> float:
-        """How far (m, up) the map has been moved to follow the navigation's frame, 0 without
-        frame tracking (docs/terrain.md, "The navigation's frame")."""
-        return 0.0 if self.frame is None else self.frame.shift_m
+        """How far (m, up) the map has been moved to follow the navigation's frame: a height in the
+        map's own frame (a tile published with ``in_map_frame``) plus this is the height in the
+        navigation's frame now (docs/terrain.md, "The navigation's frame")."""
+        return self._offset
 
     @property
     def frame_shifts(self) -> int:
         """How many times the map has been moved to follow the navigation's frame."""
-        return 0 if self.frame is None else self.frame.shifts
+        return self._shifts
 
     def shift_heights(self, up_m: float) -> None:
         """Move the whole map up by ``up_m`` (m): every height, pending height, ceiling and floor,
-        as one frame (docs/terrain.md, "The navigation's frame"). Variances and counts stay. Every
-        tile is marked for publishing once the moves since the last time add up to
-        ``frame_republish_m``: a subscriber's copy lags the vehicle's frame by less than that."""
-        n = self._n_tiles
-        d = np.float32(up_m)
-        for layer in (self._h, self._p, self._c, self._f):
-            layer[:n] += d  # NaN and +-inf (unknown, no bound) stay as they are
-        self._pf_height = self._pf_height + up_m
-        self._h_lo += up_m
-        self._h_hi += up_m
-        self._shift_unpublished += up_m
-        if abs(self._shift_unpublished) >= self.frame_republish_m:
-            self._dirty.update(self._slot_key)
-            self._shift_unpublished = 0.0
+        as one frame (docs/terrain.md, "The navigation's frame"); variances and counts stay. The
+        map's own frame does not move (no tile changes in it): only its offset to the navigation's."""
+        if not np.isfinite(up_m):
+            raise ValueError(f"shift_heights: the move must be finite, got {up_m}")
+        self._offset += float(up_m)
+        self._shifts += 1
 
     # ---------------------------------------------------------------------------------- queries
 
@@ -715,7 +762,7 @@ class TerrainGrid:
         out = np.full(len(rays), np.nan)
         if self._n_tiles == 0 or not np.isfinite(self._h_hi) or len(rays) == 0 or not np.isfinite(o).all():
             return out
-        alt0 = -o[2]
+        alt0 = -o[2] - self._offset  # the band of known heights is kept in the map's frame
         rz = rays[:, 2]  # altitude along the ray: alt(t) = alt0 - t * rz
         good = np.isfinite(rays).all(axis=1)
         down, up = rz > 0, rz < 0
@@ -778,46 +825,58 @@ class TerrainGrid:
     def __contains__(self, key) -> bool:
         return bool(self._slots_of(pack_key(np.array([key[0]]), np.array([key[1]])))[0] >= 0)
 
-    def tile(self, key: tuple[int, int], *, with_disagreement: bool = False) -> Tile:
+    def tile(self, key: tuple[int, int], *, with_disagreement: bool = False, in_map_frame: bool = False) -> Tile:
         """A copy of one tile's layers (with the internal ones, disagreement, pending and ceiling,
-        when asked); KeyError if the tile does not exist."""
+        when asked); KeyError if the tile does not exist. Heights, ceilings and floors are in the
+        navigation's frame now, or with ``in_map_frame`` in the map's own frame, which moving the
+        map leaves alone (what is published: add ``frame_shift_m`` for the navigation's)."""
         tx, ty = int(key[0]), int(key[1])
         slot = int(self._slots_of(pack_key(np.array([tx]), np.array([ty])))[0])
         if slot < 0:
             raise KeyError(f"no terrain tile {key}")
+        up = np.float32(0.0 if in_map_frame else self._offset)
+
+        def heights(layer: np.ndarray) -> np.ndarray:
+            return layer[slot] + up if up else layer[slot].copy()
+
         return Tile(
-            tx, ty, self._h[slot].copy(), self._v[slot].copy(), self._n[slot].copy(), self.cell_size_m,
+            tx, ty, heights(self._h), self._v[slot].copy(), self._n[slot].copy(), self.cell_size_m,
             self._d[slot].copy() if with_disagreement else None,
-            self._p[slot].copy() if with_disagreement else None,
-            self._c[slot].copy() if with_disagreement else None,
+            heights(self._p) if with_disagreement else None,
+            heights(self._c) if with_disagreement else None,
             self._w[slot].copy() if with_disagreement else None,
-            self._f[slot].copy() if with_disagreement else None,
+            heights(self._f) if with_disagreement else None,
         )
 
-    def tiles(self, *, with_disagreement: bool = False) -> Iterator[Tile]:
+    def tiles(self, *, with_disagreement: bool = False, in_map_frame: bool = False) -> Iterator[Tile]:
         for key in self.keys():
-            yield self.tile(key, with_disagreement=with_disagreement)
+            yield self.tile(key, with_disagreement=with_disagreement, in_map_frame=in_map_frame)
 
-    def put_tile(self, tile: Tile) -> None:
-        """Replace (or create) a tile from its layers, e.g. one decoded from the wire or a snapshot."""
+    def put_tile(self, tile: Tile, *, in_map_frame: bool = False) -> None:
+        """Replace (or create) a tile from its layers, e.g. one decoded from the wire or a snapshot;
+        its heights in the navigation's frame now, or in the map's own with ``in_map_frame``
+        (:meth:`tile`)."""
         if tile.tile_cells != self.tile_cells or tile.cell_size_m != self.cell_size_m:
             raise ValueError(
                 f"tile {tile.key} has T={tile.tile_cells}, cell {tile.cell_size_m} m; "
                 f"this grid has T={self.tile_cells}, cell {self.cell_size_m} m"
             )
         slot = int(self._ensure_tiles(pack_key(np.array([tile.tx]), np.array([tile.ty])))[0])
-        self._h[slot], self._v[slot], self._n[slot] = tile.height, tile.variance, tile.count
+        down = np.float32(0.0 if in_map_frame else self._offset)
+        self._h[slot], self._v[slot], self._n[slot] = tile.height - down, tile.variance, tile.count
         self._d[slot] = 0.0 if tile.disagreement is None else tile.disagreement
-        self._p[slot] = np.nan if tile.pending is None else tile.pending
-        self._c[slot] = np.inf if tile.ceiling is None else tile.ceiling
+        self._p[slot] = np.nan if tile.pending is None else tile.pending - down
+        self._c[slot] = np.inf if tile.ceiling is None else tile.ceiling - down
         self._w[slot] = np.minimum(tile.count, 1).astype(np.float32) if tile.weight is None else tile.weight
-        self._f[slot] = -np.inf if tile.floor is None else tile.floor
+        self._f[slot] = -np.inf if tile.floor is None else tile.floor - down
         self._u[slot] = -np.inf  # evidence of another time: old (a frame the navigation has left)
         in_slot = self._pf_cells // self._cells_per_tile == slot
         self._pf_cells, self._pf_height = self._pf_cells[~in_slot], self._pf_height[~in_slot]
+        mine = self._fo_cells // self._cells_per_tile == slot
+        self._fo_cells, self._fo_ids = self._fo_cells[~mine], self._fo_ids[~mine]
         known = tile.count > 0
         if known.any():
-            hk = tile.height[known]
+            hk = self._h[slot][known]
             self._h_lo = min(self._h_lo, float(np.nanmin(hk)))
             self._h_hi = max(self._h_hi, float(np.nanmax(hk)))
         self._dirty.add(tile.key)
@@ -825,7 +884,7 @@ class TerrainGrid:
     def memory_bytes(self) -> int:
         """Bytes held by the map: the tile pool as allocated plus the key index."""
         pool = sum(layer.nbytes for layer in self._layers())
-        side = self._pf_cells.nbytes + self._pf_height.nbytes
+        side = self._pf_cells.nbytes + self._pf_height.nbytes + self._fo_cells.nbytes + self._fo_ids.nbytes
         return int(pool + side + self._keys.nbytes + self._key_slots.nbytes + 64 * len(self._slot_key))
 
     def observed_area_m2(self) -> float:

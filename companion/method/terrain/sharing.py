@@ -30,7 +30,8 @@ from companion.method.terrain.tile import Tile
 
 @dataclass
 class _Source:
-    shift: tuple[int, int, float]                                   # (cells north, cells east, metres up)
+    shift: tuple[int, int]                                          # (cells north, cells east)
+    up: float = 0.0                                                 # metres its heights rise by, in ours
     weight: float = 1.0
     raw: dict[tuple[int, int], Tile] = field(default_factory=dict)  # its tiles as received, its frame
     placed: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
@@ -51,16 +52,20 @@ class SharedEvidence:
 
     def set_frame(self, source: str, offset_m: tuple[float, float, float], weight: float | None = None) -> None:
         """Where ``source``'s origin lies in this vehicle's frame (north, east, up; m), and how much
-        it is trusted (0 < weight <= 1). A changed offset re-places every tile already received."""
+        it is trusted (0 < weight <= 1). ``up`` takes the source's published heights to ours: its
+        origin's height above ours plus its map's ``frame_shift_m`` (its tiles are in its map's
+        own frame). A changed north or east offset re-places every tile already received; a
+        changed ``up`` costs nothing (it is added at :meth:`lookup`)."""
         if source == self.own_vehicle:
             raise ValueError(f"{source!r} is this vehicle: its own evidence is never taken back from another")
         north, east, up = (float(v) for v in offset_m)
         if not all(math.isfinite(v) for v in (north, east, up)):
             raise ValueError(f"offset of {source!r} must be finite, got {offset_m!r}")
-        shift = (int(round(north / self.cell_size_m)), int(round(east / self.cell_size_m)), up)
+        shift = (int(round(north / self.cell_size_m)), int(round(east / self.cell_size_m)))
         src = self._sources.get(source)
         if src is None:
             src = self._sources[source] = _Source(shift)
+        src.up = up  # added at lookup: a source's vertical frame moves often, its cells rarely
         if weight is not None:
             if not 0.0 < weight <= 1.0:
                 raise ValueError(f"weight of {source!r} must be in (0, 1], got {weight}")
@@ -91,7 +96,7 @@ class SharedEvidence:
     def _place(self, src: _Source, tile: Tile, clear: bool = False) -> None:
         """Write ``tile``'s cells (or empty them) at their place in this vehicle's lattice."""
         t = self.tile_cells
-        di, dj, up = src.shift
+        di, dj = src.shift
         gi0, gj0 = tile.tx * t + di, tile.ty * t + dj  # the tile's south-west cell, ours
         for ti in range(gi0 // t, (gi0 + t - 1) // t + 1):
             for tj in range(gj0 // t, (gj0 + t - 1) // t + 1):
@@ -108,7 +113,7 @@ class SharedEvidence:
                 if clear:
                     dst[0][a, b], dst[1][a, b], dst[2][a, b] = np.nan, np.inf, 0
                 else:
-                    dst[0][a, b], dst[1][a, b], dst[2][a, b] = tile.height[s, u] + up, tile.variance[s, u], tile.count[s, u]
+                    dst[0][a, b], dst[1][a, b], dst[2][a, b] = tile.height[s, u], tile.variance[s, u], tile.count[s, u]
 
     def lookup(self, source: str, ci: np.ndarray, cj: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``source``'s height, variance (divided by its weight) and count at our cells (K,)."""
@@ -125,7 +130,7 @@ class SharedEvidence:
             sel = (ti == key[0]) & (tj == key[1])
             li, lj = ci[sel] - key[0] * t, cj[sel] - key[1] * t
             h[sel], v[sel], n[sel] = layers[0][li, lj], layers[1][li, lj] / src.weight, layers[2][li, lj]
-        return h, v, n
+        return h + src.up, v, n
 
 
 def fuse_cells(h: np.ndarray, v: np.ndarray, n: np.ndarray, h_s: np.ndarray, v_s: np.ndarray, n_s: np.ndarray,
