@@ -183,6 +183,11 @@ def test_another_vehicle_s_map_frame_offset_from_its_status_raises_its_tiles_wit
                 listener.drain(shared, own)
                 time.sleep(0.1)
             assert height() == pytest.approx(10.5, abs=1e-4)
+            # v2's appearance prompted a query for its whole map, which may bring the tile once more:
+            # wait until it is answered (its replies are queued before it counts), so that what
+            # follows is the shift alone.
+            assert drain_until(listener, shared, own, lambda: listener.counts["queries_answered"] >= 1)
+            listener.drain(shared, own)
             applied = listener.counts["tiles_applied"]
             deadline = time.monotonic() + 10
             while not height() == pytest.approx(8.7) and time.monotonic() < deadline:
