@@ -31,7 +31,7 @@ import numpy as np
 import zenoh
 
 from companion.config import ConfigError, ZenohConfig, load_config
-from drivers.zenoh_bus import AVOIDANCE_SCHEMA, KEY_ROOT, STATUS_SCHEMA, BusError, BusKeys, zenoh_config
+from drivers.zenoh_bus import AVOIDANCE_SCHEMA, KEY_ROOT, STATUS_SCHEMA, BusError, BusKeys, map_frame_shift, zenoh_config
 
 UNKNOWN_BGR = (128, 128, 128)
 COLORMAP = cv2.COLORMAP_TURBO
@@ -316,7 +316,9 @@ class GroundMap:
         parts = [f"{self.keys.vehicle}: {len(self.tiles)} tiles, {self.cells_known()} cells known"]
         span = self.height_range()
         if span is not None:
-            parts.append(f"height {span[0]:.1f}..{span[1]:.1f} m")
+            shift = 0.0 if self.status is None else map_frame_shift(self.status)
+            frame = f" (map frame; {shift:+.2f} m to the vehicle's)" if shift else ""
+            parts.append(f"height {span[0]:.1f}..{span[1]:.1f} m{frame}")
         if self.status is None:
             parts.append("status: none yet")
         else:

@@ -99,6 +99,11 @@ def test_bad_inputs_are_counted_not_fatal():
     assert g.apply(KEYS.status, json_payload("companion.status/1", "v1", 4, {"state": "mapping"}))
     assert g.status["state"] == "mapping"
     assert "#4 mapping" in g.summary() and "5 bad" not in g.summary()
+    assert "map frame" not in g.summary()
+    # The map has moved 1.25 m to follow the vehicle's navigation: the tiles' heights are the
+    # map's own frame, and the line says how far the vehicle's frame is from it.
+    assert g.apply(KEYS.status, json_payload("companion.status/1", "v1", 5, {"state": "mapping", "map": {"frame_shift_m": 1.25}}))
+    assert "(map frame; +1.25 m to the vehicle's)" in g.summary()
 
 
 def test_png_is_north_up_with_heights_colour_mapped(tmp_path):
