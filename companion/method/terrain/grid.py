@@ -585,7 +585,7 @@ class TerrainGrid:
             ids = None if ids is None else ids[under_ceiling]
             if len(pts) == 0:
                 return 0
-            cells, inv = self._pool_cells(pts[:, 0], pts[:, 1])
+            cells, inv = np.unique(cells[inv[under_ceiling]], return_inverse=True)  # the rows' cells, kept
         h1, h2 = fusion.highest_two_per_cell(inv, -pts[:, 2] - self._offset, len(cells))
         floor, pending = fusion.confirm_floor(h1, h2, self._pending_floors(cells))
         # A bound in a neighbouring cell, of this batch or waiting, confirms too, at the lower of the
