@@ -51,10 +51,10 @@ def test_the_mapper_process_steps_as_the_mapper_in_this_process():
         for nav, image in zip(flight.navs, flight.images):
             a, b = local.step(nav, image), child.step(nav, image)
             steps_equal(a, b)
-            if len(a.points):  # both maps take the step's points, as the daemon and its child do
-                here_grid.insert(a.points)
-                grid.insert(b.points)
-                converged += len(a.points)
+            # both maps take the step's evidence, as the daemon and its child do
+            here_grid.add_evidence(a.points, a.free_space, a.floors)
+            grid.add_evidence(b.points, b.free_space, b.floors)
+            converged += len(a.points)
         assert converged > 0 and child.starts == 1
 
         # a step that raises in the child is reported, and the child goes on

@@ -65,7 +65,7 @@ def test_a_phantom_does_not_survive_carve_rays_looks_through_it():
     """A cell mapped at 8 m where lines of sight pass at ~3 m: each frame through it counts
     reset_evidence / carve_rays of disagreement; the third clears it. A point agreeing with the
     cell in between starts the count again."""
-    grid = TerrainGrid(carve_rays=3.0, gate_min_count=10**6)
+    grid = TerrainGrid(carve_rays=3.0, gate_min_count=10**6, lone_rise_m=math.inf)  # the phantom got in
     phantom = TerrainPoints(0.0, np.array([[16.5, 0.5, -8.0]]), np.eye(3)[None] * 0.01, np.array([1]))
     grid.insert(phantom)
     ray = one_ray((20.0, 0.5, 0.0))  # passes over north 16.5 at ~2.6 m

@@ -11,8 +11,10 @@ ArduPilot messages. Run with ``-s`` to print the table.
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 from pathlib import Path
+
 
 import numpy as np
 import pytest
@@ -348,7 +350,7 @@ def test_appearance_check_refuses_the_nearer_corner_that_looks_different():
 
 
 def test_grid_rejects_points_too_imprecise_to_belong_to_a_cell():
-    grid = TerrainGrid()
+    grid = TerrainGrid(lone_rise_m=math.inf)  # one point alone in an empty grid: the lone-point rule off
     cov = np.array([np.diag([16.0**2, 0.5, 1.0]), np.diag([0.1, 0.1, 0.1])])
     pts = TerrainPoints(0.0, np.array([[190.0, 5.0, -8.0], [10.0, 5.0, -1.0]]), cov, np.array([1, 2]))
     stats = grid.insert(pts)

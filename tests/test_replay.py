@@ -75,7 +75,8 @@ def direct_map(cfg: CompanionConfig, sigma_m: float, sigma_deg: float) -> Terrai
     mapper = build_mapper(cfg, rec, grid)
     cov = pose_covariance(np.full(3, sigma_m), np.full(3, math.radians(sigma_deg)))
     for t, p, R, image in zip(f.t, f.p, f.R_nb, f.images):
-        grid.insert(mapper.step(NavState(float(t), p, np.zeros(3), matrix_to_quat(R), cov), image).points)
+        step = mapper.step(NavState(float(t), p, np.zeros(3), matrix_to_quat(R), cov), image)
+        grid.add_evidence(step.points, step.free_space, step.floors)
     return grid
 
 

@@ -419,7 +419,7 @@ class Daemon:
                 stats = self.grid.add_evidence(step.points, step.free_space, step.floors)
                 self._map_updates.append(frame.t_s)
             self.points_converged += len(step.points)
-            for name in ("rejected_invalid", "rejected_outlier", "rejected_imprecise"):
+            for name in ("rejected_invalid", "rejected_outlier", "rejected_imprecise", "lone_points"):
                 self.grid_rejections[name] += int(getattr(stats, name, 0))
         self.step_ms.add((time.perf_counter() - t0) * 1e3)
         self.step_cpu_ms.add((time.thread_time() - c0) * 1e3)

@@ -49,7 +49,9 @@ class InsertStats:
     rejected_outlier: valid points that changed no height: below every cell they touch (counted
     as disagreement), or above and not yet confirmed (kept as the cell's pending height).
     cells_touched: cells the batch reached; cells_raised: cells that took a higher surface;
-    cells_reset: cells brought down by persistent evidence from below."""
+    cells_reset: cells brought down by persistent evidence from below; lone_points: points that
+    came into an empty cell standing alone far above everything near them (kept pending, like a
+    point above a mapped cell: a second one near it confirms them)."""
 
     inserted: int = 0
     rejected_invalid: int = 0
@@ -58,6 +60,7 @@ class InsertStats:
     cells_touched: int = 0
     cells_raised: int = 0
     cells_reset: int = 0
+    lone_points: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -135,6 +138,8 @@ class TerrainGrid:
         carve_end_margin_m: float = 1.5,
         carve_margin_m: float = 0.5,
         carve_rays: float = 3.0,
+        lone_rise_m: float = 1.5,
+        lone_block_cells: int = 4,
         frame_tracker: FrameTracker | None = None,
     ) -> None:
         if not (np.isfinite(cell_size_m) and cell_size_m > 0):
@@ -159,6 +164,14 @@ class TerrainGrid:
         self.carve_end_margin_m = float(carve_end_margin_m)
         self.carve_margin_m = float(carve_margin_m)
         self.carve_rays = float(carve_rays)
+        if not (lone_rise_m > 0):
+            raise ValueError(f"lone_rise_m must be positive (inf: off), got {lone_rise_m}")
+        if not int(lone_block_cells) >= 1:
+            raise ValueError(f"lone_block_cells must be at least 1, got {lone_block_cells}")
+        self.lone_rise_m = float(lone_rise_m)
+        # Blocks tile the tiles: the largest divisor of tile_cells not above the setting.
+        self.lone_block_cells = max(d for d in range(1, min(int(lone_block_cells), self.tile_cells) + 1)
+                                    if self.tile_cells % d == 0)
         # The map's vertical frame kept on the navigation's (frame.py); None: never moved.
         self.frame = frame_tracker
         # Every height is stored in the map's own frame (the frame its evidence was first fused in);
@@ -205,6 +218,8 @@ class TerrainGrid:
             carve_end_margin_m=cfg.carve_end_margin_m,
             carve_margin_m=cfg.carve_margin_m,
             carve_rays=cfg.carve_rays,
+            lone_rise_m=cfg.lone_rise_m,
+            lone_block_cells=cfg.lone_block_cells,
             frame_tracker=FrameTracker(cfg.frame_min_age_s, cfg.frame_window_s, cfg.frame_min_points,
                                        cfg.frame_max_offset_m, cfg.frame_deadband_m) if cfg.frame_tracking else None,
         )
@@ -374,8 +389,18 @@ class TerrainGrid:
             shift = self.frame.update(now, hm[old] - h0[old], w[old])
             if shift:
                 self.shift_heights(shift)
-                hm = hm - shift  # the same points, in the moved map's frame
+                hm, height = hm - shift, height - shift  # the same points, in the moved map's frame
         side = fusion.gate_side(hm, r, h0, v0, n0, self.gate_sigma, self.gate_min_count, self.below_gate_sigma)
+        n_lone = 0
+        if np.isfinite(self.lone_rise_m):
+            # A point alone far above everything near it waits in the empty cells it reaches
+            # (docs/terrain.md, "A lone point").
+            in_empty = n0 == 0
+            candidates = np.zeros(len(pos), dtype=bool)
+            candidates[p[in_empty]] = True
+            lone = self._lone_points(pos[:, 0], pos[:, 1], height, np.sqrt(var_z), np.flatnonzero(candidates))
+            side[in_empty & lone[p]] = 1
+            n_lone = int(np.count_nonzero(lone))
         agree, above, below = side == 0, side > 0, side < 0
 
         # Number the cells this batch touches 0..K-1 (batch tile * T^2 + cell in tile, compacted),
@@ -421,6 +446,10 @@ class TerrainGrid:
             d_new[update] = 0.0
         h1, v1 = fusion.fuse_information(h_new[update], v_new[update], info[update], info_h[update], self.process_noise_m2)
         h_new[update], v_new[update] = h1, v1
+        # An empty cell's first evidence settles a lone point it held as pending at or below it.
+        with np.errstate(invalid="ignore"):
+            settled = update & (n_new == 0) & (pending <= h_new + self.gate_sigma * np.sqrt(v_new))
+        pending[settled] = np.nan
         n_new[update] += n_agree[update]
         w_new[update] += w_agree[update]
 
@@ -469,7 +498,61 @@ class TerrainGrid:
             cells_touched=k,
             cells_raised=int(np.count_nonzero(raised)),
             cells_reset=int(np.count_nonzero(reset & ~raised)),
+            lone_points=n_lone,
         )
+
+    def _lone_points(self, north_m: np.ndarray, east_m: np.ndarray, height: np.ndarray, sigma_m: np.ndarray,
+                     candidates: np.ndarray) -> np.ndarray:
+        """(N,) bool: which of the batch's points (``north_m``, ``east_m``, ``height`` in the map's
+        frame, height sigma ``sigma_m``, each (N,)) whose index is in ``candidates`` stand alone
+        (docs/terrain.md, "A lone point"): more than ``max(lone_rise_m, gate_sigma sigma)`` above
+        every height near them. Near = the 3x3 blocks of ``lone_block_cells`` cells around the
+        point's own block (a point sees 1 to 2 blocks of terrain on every side); the heights = the
+        map's there (mapped cells, pending heights, floors) and the batch's other points."""
+        lone = np.zeros(len(height), dtype=bool)
+        if len(candidates) == 0:
+            return lone
+        b, per_tile = self.lone_block_cells, self.tile_cells // self.lone_block_cells
+        ci, cj = self.cell_index(north_m, east_m)
+        bi, bj = np.floor_divide(ci, b), np.floor_divide(cj, b)
+        # The batch: the highest two points of each block (a point is not its own support).
+        bkeys, bcell = np.unique(pack_key(bi, bj), return_inverse=True)
+        h1, h2 = fusion.highest_two_per_cell(bcell, height, len(bkeys))
+        # The candidates' distinct blocks and the 3x3 blocks around each: (U, 9), the centre at 4.
+        ublocks, of_candidate = np.unique(bcell[candidates], return_inverse=True)
+        ubi, ubj = unpack_key(bkeys[ublocks])
+        off_i, off_j = (a.ravel() for a in np.meshgrid([-1, 0, 1], [-1, 0, 1], indexing="ij"))
+        ni, nj = ubi[:, None] + off_i, ubj[:, None] + off_j
+        nkeys = pack_key(ni, nj)
+        at = np.minimum(np.searchsorted(bkeys, nkeys), len(bkeys) - 1)
+        around = np.where(bkeys[at] == nkeys, h1[at], -np.inf)
+        around[:, 4] = -np.inf  # the candidate's own block: its batch's other points, below
+        own = bcell[candidates]
+        hc = height[candidates]
+        support = np.fmax(around.max(axis=1)[of_candidate], np.where(hc >= h1[own], h2[own], h1[own]))
+        rise = np.maximum(self.lone_rise_m, self.gate_sigma * sigma_m[candidates])
+        alone = hc > support + rise
+        if alone.any():
+            # The map, for the candidates their batch does not support: the highest height it holds
+            # in each block around them (mapped cell, pending height, floor).
+            need, of_alone = np.unique(of_candidate[alone], return_inverse=True)
+            mi, mj = ni[need], nj[need]
+            tx, ty = np.floor_divide(mi, per_tile), np.floor_divide(mj, per_tile)
+            tile_keys, where = np.unique(pack_key(tx, ty).ravel(), return_inverse=True)
+            slots = self._slots_of(tile_keys)
+            top = np.full((len(tile_keys), per_tile * per_tile), -np.inf)
+            have = np.flatnonzero(slots >= 0)
+            if len(have):
+                s = slots[have]
+                with np.errstate(invalid="ignore"):
+                    cell_top = np.fmax(np.fmax(np.where(self._n[s] > 0, self._h[s], np.nan), self._p[s]), self._f[s])
+                top[have] = np.nan_to_num(cell_top.reshape(len(s), per_tile, b, per_tile, b).max(axis=(2, 4)),
+                                          nan=-np.inf).reshape(len(s), -1)
+            local = (mi - tx * per_tile) * per_tile + (mj - ty * per_tile)
+            mapped = top[where.reshape(mi.shape), local].max(axis=1)[of_alone]
+            alone[alone] = hc[alone] > mapped + rise[alone]
+        lone[candidates] = alone
+        return lone
 
     def carve(self, rays: FreeSpaceRays) -> CarveStats:
         """Visibility carving (docs/terrain.md, "Free space"): every segment of ``rays`` crossed
