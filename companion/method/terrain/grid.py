@@ -28,6 +28,8 @@ _KEY_BIAS = np.int64(1 << 31)
 _COUNT_MAX = np.iinfo(np.uint32).max
 _NEIGHBOUR_DI = np.array([-1, -1, -1, 0, 0, 1, 1, 1])  # the eight neighbours of a cell
 _NEIGHBOUR_DJ = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
+_AROUND_DI = np.r_[0, _NEIGHBOUR_DI]  # a cell (or block) and its eight neighbours, itself first
+_AROUND_DJ = np.r_[0, _NEIGHBOUR_DJ]
 
 
 def pack_key(tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
@@ -518,15 +520,14 @@ class TerrainGrid:
         # The batch: the highest two points of each block (a point is not its own support).
         bkeys, bcell = np.unique(pack_key(bi, bj), return_inverse=True)
         h1, h2 = fusion.highest_two_per_cell(bcell, height, len(bkeys))
-        # The candidates' distinct blocks and the 3x3 blocks around each: (U, 9), the centre at 4.
+        # The candidates' distinct blocks and the 3x3 blocks around each: (U, 9), their own first.
         ublocks, of_candidate = np.unique(bcell[candidates], return_inverse=True)
         ubi, ubj = unpack_key(bkeys[ublocks])
-        off_i, off_j = (a.ravel() for a in np.meshgrid([-1, 0, 1], [-1, 0, 1], indexing="ij"))
-        ni, nj = ubi[:, None] + off_i, ubj[:, None] + off_j
+        ni, nj = ubi[:, None] + _AROUND_DI, ubj[:, None] + _AROUND_DJ
         nkeys = pack_key(ni, nj)
         at = np.minimum(np.searchsorted(bkeys, nkeys), len(bkeys) - 1)
         around = np.where(bkeys[at] == nkeys, h1[at], -np.inf)
-        around[:, 4] = -np.inf  # the candidate's own block: its batch's other points, below
+        around[:, 0] = -np.inf  # the candidate's own block: its batch's other points, below
         own = bcell[candidates]
         hc = height[candidates]
         support = np.fmax(around.max(axis=1)[of_candidate], np.where(hc >= h1[own], h2[own], h1[own]))
