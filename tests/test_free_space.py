@@ -172,6 +172,62 @@ def test_a_floor_follows_the_feature_that_set_it_and_stays_when_the_feature_dies
     assert bounds(plain, 10.5)[1] == pytest.approx(5.0)
 
 
+def test_a_floor_whose_feature_ended_goes_when_nothing_near_backs_it():
+    """docs/terrain.md, "A floor whose feature ended": a feature that confirmed its own bound and
+    then left the mapper without converging leaves a floor nothing else says; alone (more than
+    lone_rise_m above every height in the 3x3 blocks of 4 cells around it) it goes, counted. One
+    within lone_rise_m of a mapped cell, a pending height or a live feature's floor near it stays,
+    and so does a floor whose feature is still alive."""
+    grid = TerrainGrid()  # lone_rise_m 1.5, blocks of 4 cells
+    cov = np.eye(3)[None] * 0.04
+
+    def bounds_of(t, rows, ended=()):
+        return TerrainFloors(t, np.array([r[1:] for r in rows], float).reshape(-1, 3), np.array([r[0] for r in rows], np.int64),
+                             np.array(ended, np.int64))
+
+    # Ground mapped at 0 m around north 40 and 80; floors of features 1 (40.5: 6 m, nothing near),
+    # 2 (80.5: 1.2 m, ground 0 m two cells away), 3 (120.5: 6 m, feature 4's live floor of 5 m
+    # three cells away) and 5 (160.5: 6 m, alive throughout).
+    ground = np.array([[42.5, 0.5, 0.0], [43.5, 0.5, 0.0], [82.5, 0.5, 0.0], [83.5, 0.5, 0.0]])
+    grid.insert(TerrainPoints(0.0, ground, np.repeat(cov, 4, axis=0), np.arange(100, 104)))
+    grid.insert(TerrainPoints(0.0, ground, np.repeat(cov, 4, axis=0), np.arange(104, 108)))
+    assert grid.height_at(np.array([42.5]), np.array([0.5]))[2][0] > 0
+    rows = [(1, 40.5, 0.5, -6.0), (2, 80.5, 0.5, -1.2), (3, 120.5, 0.5, -6.0), (4, 123.5, 0.5, -5.0), (5, 160.5, 0.5, -6.0)]
+    grid.add_evidence(TerrainPoints.empty(0.1), floors=bounds_of(0.1, rows))
+    stats = grid.add_evidence(TerrainPoints.empty(0.2), floors=bounds_of(0.2, rows))  # held over two frames
+    assert stats.lone_floors == 0
+    assert [bounds(grid, n)[1] for n in (40.5, 80.5, 120.5, 160.5)] == pytest.approx([6.0, 1.2, 6.0, 6.0])
+    # Features 1, 2 and 3 end (feature 4 still bounds its cell, 5 is still alive).
+    stats = grid.add_evidence(TerrainPoints.empty(0.3), floors=bounds_of(0.3, [rows[3], rows[4]], ended=[1, 2, 3]))
+    assert stats.lone_floors == 1
+    assert bounds(grid, 40.5)[1] == -np.inf  # alone: gone
+    assert bounds(grid, 80.5)[1] == pytest.approx(1.2)  # within 1.5 m of the ground near it
+    assert bounds(grid, 120.5)[1] == pytest.approx(6.0)  # a live floor 1 m below it, 3 cells away
+    assert bounds(grid, 160.5)[1] == pytest.approx(6.0)  # its feature lives
+    # What stayed is nobody's now: the same ids ending again change nothing.
+    assert grid.withdraw_ended_floors(np.array([1, 2, 3])) == 0
+    assert bounds(grid, 120.5)[1] == pytest.approx(6.0)
+
+
+def test_the_floors_of_features_that_ended_together_do_not_back_each_other():
+    """Two floors side by side whose features both ended are each judged with the other gone:
+    neither is evidence any more. A floor one of them no longer holds (dropped by a line of sight
+    since) is not withdrawn twice, and an id the map never saw is ignored."""
+    grid = TerrainGrid()
+    rows = np.array([[10.5, 0.5, -6.0], [11.5, 0.5, -6.0]])
+    for t in (0.0, 0.1):
+        grid.raise_floors(TerrainFloors(t, rows, np.array([1, 2])))
+    assert [bounds(grid, n)[1] for n in (10.5, 11.5)] == pytest.approx([6.0, 6.0])
+    assert grid.withdraw_ended_floors(np.array([1, 2, 99])) == 2
+    assert [bounds(grid, n)[1] for n in (10.5, 11.5)] == [-np.inf, -np.inf]
+    # A line of sight drops feature 7's floor before it ends: nothing left to withdraw.
+    for t in (0.2, 0.3):
+        grid.raise_floors(TerrainFloors(t, np.array([[30.5, 0.5, -6.0]]), np.array([7])))
+    grid.carve(one_ray((40.0, 0.5, -2.0), origin=(20.0, 0.5, -2.0)))
+    assert bounds(grid, 30.5)[1] == -np.inf
+    assert grid.withdraw_ended_floors(np.array([7])) == 0
+
+
 def test_confirm_floor_is_the_second_highest_of_the_pending_and_the_batch():
     inf = np.inf
     h1 = np.array([5.0, 5.0, 5.0, -inf, 3.0])

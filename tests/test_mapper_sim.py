@@ -160,6 +160,8 @@ def play(world, frames, parameterisation: str, **overrides) -> dict:
         assert step.rejected_reason == ""
         for fid in step.removed_ids.tolist():
             died[fid] = k
+        # The map hears of every feature that ended, so it can withdraw floors nothing backs.
+        assert np.array_equal(step.floors.ended_ids, step.removed_ids)
         for fid, m in zip(step.matched_ids.tolist(), step.matched_measurements.tolist()):
             n_matched += 1
             if truth_of[fid] != idx[m]:

@@ -117,11 +117,15 @@ class TerrainFloors:
     """Lower bounds on the terrain's height, handed from the mapper to the terrain map (docs/mapper.md,
     "Bounds of an unconverged feature"): the terrain in the cell of each ``positions_ned_m`` (K, 3)
     row's north and east reaches at least that row's height (``-down``); ``feature_ids`` (K,), the
-    feature each row bounds, lets the map move a floor with its feature (docs/terrain.md, "Floors")."""
+    feature each row bounds, lets the map move a floor with its feature (docs/terrain.md, "Floors");
+    ``ended_ids`` (E,), the features that left the mapper this step (out of view, replaced, or
+    corrupt), lets the map withdraw a floor no longer backed by anything (docs/terrain.md, "A floor
+    whose feature ended")."""
 
     t_s: float
     positions_ned_m: np.ndarray
     feature_ids: np.ndarray | None = None
+    ended_ids: np.ndarray | None = None
 
     @classmethod
     def empty(cls, t_s: float = 0.0) -> "TerrainFloors":
@@ -129,3 +133,8 @@ class TerrainFloors:
 
     def __len__(self) -> int:
         return len(self.positions_ned_m)
+
+    @property
+    def n_ended(self) -> int:
+        """How many features ended this step (0 when not told)."""
+        return 0 if self.ended_ids is None else len(self.ended_ids)

@@ -413,13 +413,13 @@ class Daemon:
         self.innovation_nis_sum += step.innovation_nis_sum
         self.corner_updates += step.n_corner_updates
         self.point_covariance_scale = step.point_covariance_scale
-        changed = bool(len(step.points) or len(step.free_space) or len(step.floors))
+        changed = bool(len(step.points) or len(step.free_space) or len(step.floors) or step.floors.n_ended)
         if changed:
             with self.grid_lock:
                 stats = self.grid.add_evidence(step.points, step.free_space, step.floors)
                 self._map_updates.append(frame.t_s)
             self.points_converged += len(step.points)
-            for name in ("rejected_invalid", "rejected_outlier", "rejected_imprecise", "lone_points"):
+            for name in ("rejected_invalid", "rejected_outlier", "rejected_imprecise", "lone_points", "lone_floors"):
                 self.grid_rejections[name] += int(getattr(stats, name, 0))
         self.step_ms.add((time.perf_counter() - t0) * 1e3)
         self.step_cpu_ms.add((time.thread_time() - c0) * 1e3)

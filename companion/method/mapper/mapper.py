@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from statistics import NormalDist
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import ModuleType
 
 import numpy as np
@@ -116,7 +116,8 @@ class MapperStep:
     (``mapper.free_space_sigma``; docs/mapper.md, "Bounds of an unconverged feature"), for the
     map's carving.
     floors: lower bounds on the terrain's height from the features not yet converged
-    (``mapper.floor_max_depth_sigma_m``; docs/mapper.md, "Bounds of an unconverged feature").
+    (``mapper.floor_max_depth_sigma_m``; docs/mapper.md, "Bounds of an unconverged feature"), with
+    ``removed_ids`` as its ``ended_ids``.
     n_edgels: measurements that were edgels (docs/mapper.md, "Edgels"); n_edge_matched: edge
     features updated across their edge.
     innovation_nis_sum: the sum over the corners that updated a feature of their normalised
@@ -348,12 +349,17 @@ class Mapper:
         # the last step's measurements as :meth:`step` detected them (raw pixels, corners then
         # edgels; the indices of MapperStep.*_measurements), for diagnostics
         self.last_measurements_raw = np.zeros((0, 2))
+        # Tracking between detections: the last frame (grey) and the raw pixels of its corners that
+        # measured a feature (matched or initialised), where this frame's tracker starts from.
+        self._track_gray: np.ndarray | None = None
+        self._track_from = np.zeros((0, 2), dtype=np.float32)
 
     # ------------------------------------------------------------------------------------------
     def reset(self) -> None:
         """Forget every feature (ids keep increasing)."""
         self.db.clear()
         self._last_nav_t = np.inf
+        self._track_gray = None
 
 
     def step(self, nav: NavState, image: np.ndarray) -> MapperStep:
@@ -364,6 +370,7 @@ class Mapper:
             raise ValueError(f"mapper image must be (H, W) or (H, W, 3), got shape {image.shape}")
         reason, P_x = _checked_pose_covariance(nav)
         if reason:
+            self._track_gray = None  # no step: the next frame has nothing to track from
             return self._refused(nav, 0, reason)
         if self.detector is not None:
             uv_raw, _scores = self.detector(image)
@@ -371,10 +378,17 @@ class Mapper:
             uv_raw, _scores = self._harris(image)
         uv_raw = np.asarray(uv_raw, dtype=float).reshape(-1, 2)
         normals = None
-        if self.cfg.max_edgels > 0 or self.cfg.appearance_patch_px > 0:
+        tracking = self.cfg.track_window_px > 0
+        n_tracked = 0
+        if self.cfg.max_edgels > 0 or self.cfg.appearance_patch_px > 0 or tracking:
             from companion.method.mapper.features import as_gray, detect_edgels
 
             gray = as_gray(image)
+        n_corners = len(uv_raw)
+        if tracking:
+            tracked = self._tracked(gray, uv_raw)
+            n_tracked = len(tracked)
+            uv_raw = np.concatenate([uv_raw, tracked])
         if self.cfg.max_edgels > 0:
             from companion.method.mapper.features import HarrisDetector
 
@@ -399,7 +413,47 @@ class Mapper:
         if self.cfg.appearance_patch_px > 0:
             # cut later, for the few measurements that need one (appearance.FramePatches)
             patches = FramePatches(gray, uv_raw, self.cfg.appearance_patch_px)
-        return self._step_checked(nav, P_x, self.camera.undistort(uv_raw), patches, normals)
+        no_start = None
+        if n_tracked:
+            no_start = np.zeros(len(uv_raw), dtype=bool)
+            no_start[n_corners:n_corners + n_tracked] = True  # corners, tracked points, edgels
+        step = self._step_checked(nav, P_x, self.camera.undistort(uv_raw), patches, normals, no_start)
+        if tracking:
+            # The corners that measured a feature this frame are where the next frame's tracker
+            # starts (an edgel slides along its edge under the tracker: not followed).
+            used = np.concatenate([step.matched_measurements, step.initialised_measurements])
+            if normals is not None:
+                used = used[~normals[used].any(axis=1)]
+            self._track_from = uv_raw[used].astype(np.float32)
+            self._track_gray = gray.copy()
+        return step
+
+    def _tracked(self, gray: np.ndarray, corners_raw: np.ndarray) -> np.ndarray:
+        """Tracking between detections (docs/mapper.md): the last frame's corners that measured a
+        feature, followed into ``gray`` by pyramidal Lucas-Kanade (``track_window_px``,
+        ``track_levels``), kept where tracking back lands within ``track_max_fb_px`` of the start
+        and no detected corner of ``corners_raw`` (K, 2) lies within ``min_distance_px`` (the
+        detector found it again). Raw pixels (T, 2)."""
+        import cv2
+
+        start = self._track_from
+        if self._track_gray is None or self._track_gray.shape != gray.shape or len(start) == 0:
+            return np.zeros((0, 2))
+        w = self.cfg.track_window_px
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.01)
+        p0 = start.reshape(-1, 1, 2)
+        p1, ok1, _ = cv2.calcOpticalFlowPyrLK(self._track_gray, gray, p0, None, winSize=(w, w),
+                                              maxLevel=self.cfg.track_levels, criteria=criteria)
+        back, ok2, _ = cv2.calcOpticalFlowPyrLK(gray, self._track_gray, p1, None, winSize=(w, w),
+                                                maxLevel=self.cfg.track_levels, criteria=criteria)
+        p1, back = p1.reshape(-1, 2).astype(float), back.reshape(-1, 2).astype(float)
+        fb = np.sqrt(((back - start) ** 2).sum(axis=1))
+        keep = (ok1.ravel() == 1) & (ok2.ravel() == 1) & (fb <= self.cfg.track_max_fb_px) & _in_image(p1, self.camera)
+        p1 = p1[keep]
+        if len(p1) and len(corners_raw):
+            d2 = ((p1[:, None, :] - corners_raw[None, :, :]) ** 2).sum(axis=2)
+            p1 = p1[d2.min(axis=1) > self.cfg.min_distance_px**2]
+        return p1
 
     def _flow_crossing(self, R_nc: np.ndarray, translation_ned: np.ndarray, uv: np.ndarray, normal: np.ndarray) -> np.ndarray:
         """``|sin|`` of the angle (E,) at which each edge (ideal pixels ``uv`` (E, 2), unit normals
@@ -476,12 +530,14 @@ class Mapper:
 
     def _step_checked(
         self, nav: NavState, P_x: np.ndarray, uv: np.ndarray, patches: FramePatches | GivenPatches | None,
-        normals: np.ndarray | None = None,
+        normals: np.ndarray | None = None, no_start: np.ndarray | None = None,
     ) -> MapperStep:
         """:meth:`step_measurements` after its input checks: ``nav`` accepted by :func:`check_nav`
         with its symmetrised pose covariance ``P_x`` (6, 6), ``uv`` (N, 2) float, ``patches`` the
         measurements' normalised patches (N of them, ``rows(index)`` -> (k, K) float32) or None,
-        ``normals`` (N, 2) the edgels' unit normals (zero rows: corners) or None (all corners)."""
+        ``normals`` (N, 2) the edgels' unit normals (zero rows: corners) or None (all corners),
+        ``no_start`` (N,) bool the measurements that may update a feature but never start one (the
+        tracker's points) or None (none)."""
         cfg, db, model = self.cfg, self.db, self.model
         self.frame += 1
         pose = CameraPose.from_nav(nav.position_ned_m, nav.quaternion_wxyz, self.mount)
@@ -499,6 +555,7 @@ class Mapper:
             desc = patches.subset(meas_index) if patches is not None else None
             n_z = None if normals is None else normals[valid]
         edgel = np.zeros(len(z), bool) if n_z is None else (n_z != 0.0).any(axis=1)
+        may_start = None if no_start is None else ~no_start[meas_index]
         any_edges = bool(edgel.any()) or bool(db.edge[db.active_slots()].any())
         n_dropped = int(len(uv) - len(z))
         emitted: list[TerrainPoints] = []
@@ -657,7 +714,7 @@ class Mapper:
         blocked = ambiguous | near_stored_pairs(pairs, len(z), cfg.init_exclusion_chi2, cfg.min_distance_px)
         if edge_pairs is not None:
             blocked |= edge_pairs.near
-        candidates = np.flatnonzero(~used & ~blocked)
+        candidates = np.flatnonzero(~used & ~blocked if may_start is None else ~used & ~blocked & may_start)
         if any_edges and len(candidates):
             # an edgel in a bin with no corner and no stored feature in view comes before the
             # corners: a plain face's outline would otherwise never get a slot among the corners
@@ -707,6 +764,7 @@ class Mapper:
                 db.has_template[targets] = True
 
         n_update_rejected = int((~ok).sum())
+        removed = np.concatenate(removed_ids)
         return MapperStep(
             points=_concatenate(nav.t_s, emitted),
             n_measurements=len(uv),
@@ -725,9 +783,9 @@ class Mapper:
             matched_measurements=meas_index[updated_meas].astype(np.int64),
             initialised_ids=new_ids,
             initialised_measurements=meas_index[chosen].astype(np.int64),
-            removed_ids=np.concatenate(removed_ids),
+            removed_ids=removed,
             free_space=free_space,
-            floors=floors,
+            floors=replace(floors, ended_ids=removed.copy()),
             n_edgels=int(edgel.sum()),
             n_edge_matched=n_edge_matched,
             innovation_nis_sum=innovation_nis_sum,

@@ -11,7 +11,7 @@ indexing, and memory follows the tiles that exist (the area observed), never a b
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator
 
@@ -53,7 +53,9 @@ class InsertStats:
     cells_touched: cells the batch reached; cells_raised: cells that took a higher surface;
     cells_reset: cells brought down by persistent evidence from below; lone_points: points that
     came into an empty cell standing alone far above everything near them (kept pending, like a
-    point above a mapped cell: a second one near it confirms them)."""
+    point above a mapped cell: a second one near it confirms them). From
+    :meth:`TerrainGrid.add_evidence` also lone_floors: floors withdrawn because the feature that
+    raised them ended and nothing near them backs them."""
 
     inserted: int = 0
     rejected_invalid: int = 0
@@ -63,6 +65,7 @@ class InsertStats:
     cells_raised: int = 0
     cells_reset: int = 0
     lone_points: int = 0
+    lone_floors: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -327,12 +330,16 @@ class TerrainGrid:
         """One frame's evidence, in order: the free space its lines of sight crossed
         (:meth:`carve`), its converged points (:meth:`insert`, whose statistics are returned), then
         the floors of its features not yet converged (:meth:`raise_floors`): a point replaces its
-        cell's floor, and the features still unconverged raise theirs again after it."""
+        cell's floor, and the features still unconverged raise theirs again after it; last, the
+        floors of the features that ended, where nothing near them backs them
+        (:meth:`withdraw_ended_floors`, counted in the returned ``lone_floors``)."""
         if free_space is not None and len(free_space):
             self.carve(free_space)
         stats = self.insert(points) if len(points) else InsertStats()
         if floors is not None and len(floors):
             self.raise_floors(floors)
+        if floors is not None and floors.n_ended:
+            stats = replace(stats, lone_floors=self.withdraw_ended_floors(floors.ended_ids))
         return stats
 
     def insert(self, points: TerrainPoints) -> InsertStats:
@@ -514,7 +521,7 @@ class TerrainGrid:
         lone = np.zeros(len(height), dtype=bool)
         if len(candidates) == 0:
             return lone
-        b, per_tile = self.lone_block_cells, self.tile_cells // self.lone_block_cells
+        b = self.lone_block_cells
         ci, cj = self.cell_index(north_m, east_m)
         bi, bj = np.floor_divide(ci, b), np.floor_divide(cj, b)
         # The batch: the highest two points of each block (a point is not its own support).
@@ -534,26 +541,31 @@ class TerrainGrid:
         rise = np.maximum(self.lone_rise_m, self.gate_sigma * sigma_m[candidates])
         alone = hc > support + rise
         if alone.any():
-            # The map, for the candidates their batch does not support: the highest height it holds
-            # in each block around them (mapped cell, pending height, floor).
+            # The map, for the candidates their batch does not support.
             need, of_alone = np.unique(of_candidate[alone], return_inverse=True)
-            mi, mj = ni[need], nj[need]
-            tx, ty = np.floor_divide(mi, per_tile), np.floor_divide(mj, per_tile)
-            tile_keys, where = np.unique(pack_key(tx, ty).ravel(), return_inverse=True)
-            slots = self._slots_of(tile_keys)
-            top = np.full((len(tile_keys), per_tile * per_tile), -np.inf)
-            have = np.flatnonzero(slots >= 0)
-            if len(have):
-                s = slots[have]
-                with np.errstate(invalid="ignore"):
-                    cell_top = np.fmax(np.fmax(np.where(self._n[s] > 0, self._h[s], np.nan), self._p[s]), self._f[s])
-                top[have] = np.nan_to_num(cell_top.reshape(len(s), per_tile, b, per_tile, b).max(axis=(2, 4)),
-                                          nan=-np.inf).reshape(len(s), -1)
-            local = (mi - tx * per_tile) * per_tile + (mj - ty * per_tile)
-            mapped = top[where.reshape(mi.shape), local].max(axis=1)[of_alone]
+            mapped = self._highest_around_blocks(ubi[need], ubj[need])[of_alone]
             alone[alone] = hc[alone] > mapped + rise[alone]
         lone[candidates] = alone
         return lone
+
+    def _highest_around_blocks(self, bi: np.ndarray, bj: np.ndarray) -> np.ndarray:
+        """(U,) the highest height the map holds (mapped cell, pending height, floor; -inf none) in
+        the 3x3 blocks of ``lone_block_cells`` cells around each block (``bi``, ``bj``) (U,)."""
+        b, per_tile = self.lone_block_cells, self.tile_cells // self.lone_block_cells
+        mi, mj = bi[:, None] + _AROUND_DI, bj[:, None] + _AROUND_DJ
+        tx, ty = np.floor_divide(mi, per_tile), np.floor_divide(mj, per_tile)
+        tile_keys, where = np.unique(pack_key(tx, ty).ravel(), return_inverse=True)
+        slots = self._slots_of(tile_keys)
+        top = np.full((len(tile_keys), per_tile * per_tile), -np.inf)
+        have = np.flatnonzero(slots >= 0)
+        if len(have):
+            s = slots[have]
+            with np.errstate(invalid="ignore"):
+                cell_top = np.fmax(np.fmax(np.where(self._n[s] > 0, self._h[s], np.nan), self._p[s]), self._f[s])
+            top[have] = np.nan_to_num(cell_top.reshape(len(s), per_tile, b, per_tile, b).max(axis=(2, 4)),
+                                      nan=-np.inf).reshape(len(s), -1)
+        local = (mi - tx * per_tile) * per_tile + (mj - ty * per_tile)
+        return top[where.reshape(mi.shape), local].max(axis=1)
 
     def carve(self, rays: FreeSpaceRays) -> CarveStats:
         """Visibility carving (docs/terrain.md, "Free space"): every segment of ``rays`` crossed
@@ -723,6 +735,38 @@ class TerrainGrid:
         if left.any():
             self._f.reshape(-1)[self._fo_cells[left]] = -np.inf
             self._fo_cells, self._fo_ids = self._fo_cells[~left], self._fo_ids[~left]
+
+    def withdraw_ended_floors(self, ended_ids: np.ndarray) -> int:
+        """The features ``ended_ids`` (E,) left the mapper (docs/terrain.md, "A floor whose feature
+        ended"): a floor one of them raised, and still owns, says nothing any more. It goes if it
+        stands alone: more than ``lone_rise_m`` above every height the map holds (mapped cell,
+        pending height, another floor) in the 3x3 blocks of ``lone_block_cells`` cells around its
+        cell's block. The ended features' floors do not back each other (each is judged with all
+        of them gone). One backed by a height near it stays, unowned, as a floor of a feature that
+        died did before: the warning of a face's top whose feature did not live to converge.
+        Returns the number of floors withdrawn."""
+        ended_ids = np.asarray(ended_ids, dtype=np.int64).reshape(-1)
+        if not len(self._fo_cells) or not len(ended_ids):
+            return 0
+        ended = np.isin(self._fo_ids, ended_ids)
+        if not ended.any():
+            return 0
+        cells = self._fo_cells[ended]
+        self._fo_cells, self._fo_ids = self._fo_cells[~ended], self._fo_ids[~ended]
+        floors = self._f.reshape(-1)[cells]
+        owned = np.isfinite(floors)  # a floor since dropped (a point, a line of sight) is not theirs
+        cells, floors = cells[owned], floors[owned]
+        if not len(cells):
+            return 0
+        self._f.reshape(-1)[cells] = -np.inf  # judged without them
+        t, b = self.tile_cells, self.lone_block_cells
+        txy = np.array([self._slot_key[s] for s in (cells // self._cells_per_tile).tolist()], dtype=np.int64)
+        local = cells % self._cells_per_tile
+        bi = np.floor_divide(txy[:, 0] * t + local // t, b)
+        bj = np.floor_divide(txy[:, 1] * t + local % t, b)
+        lone = floors > self._highest_around_blocks(bi, bj) + self.lone_rise_m
+        self._f.reshape(-1)[cells[~lone]] = floors[~lone]
+        return int(np.count_nonzero(lone))
 
     def _pending_floors(self, cells: np.ndarray) -> np.ndarray:
         """The pending floor (m) of each pool cell of ``cells`` (K,), -inf none."""
