@@ -91,3 +91,26 @@ def test_a_tracked_point_lands_where_the_surface_point_projects(flight):
     errors = np.array(errors)
     assert len(errors) >= 60
     assert np.median(errors) < 0.3 and np.percentile(errors, 95) < 1.0
+
+
+def test_a_tracked_point_updates_its_feature_but_keeps_the_detectors_patch(flight):
+    """The appearance check compares a tracked point with the patch of the feature's last detected
+    corner, not with the tracker's own window of the frame before: a slow drift cannot carry the
+    patch with it. The estimate itself is updated."""
+    cfg = dataclasses.replace(flight.cfg.mapper, track_window_px=15, max_edgels=0)
+    W, H = flight.camera.width, flight.camera.height
+    mapper = Mapper(cfg, flight.camera, flight.mount, detector=FirstFrameOnly(HarrisDetector(cfg, W, H, flight.cfg.camera.border_px)),
+                    border_px=flight.cfg.camera.border_px)
+    before = None
+    for k, image in enumerate(flight.images[:3]):
+        p, R_nb, v = body_pose(k / RATE_HZ)
+        step = mapper.step(NavState(k / RATE_HZ, p, v, matrix_to_quat(R_nb), nav_covariance()), image)
+        slots = mapper.db.active_slots()
+        if before is None:
+            before = {int(i): (mapper.db.template[s].copy(), mapper.db.y[s].copy()) for i, s in zip(mapper.db.ids[slots], slots)}
+            continue
+        assert step.n_matched > 0
+        for i in step.matched_ids.tolist():
+            s = int(np.flatnonzero(mapper.db.ids == i)[0])
+            np.testing.assert_array_equal(mapper.db.template[s], before[i][0])
+            assert not np.array_equal(mapper.db.y[s], before[i][1])

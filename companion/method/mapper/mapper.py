@@ -395,7 +395,8 @@ class Mapper:
             corner_detector = self.detector if self.detector is not None else self._detector
             # a static mask's or a black border's outline is an edge too: the corners' valid region
             valid = corner_detector.valid_region(gray) if isinstance(corner_detector, HarrisDetector) else None
-            edge_uv, edge_n, _strength = detect_edgels(gray, uv_raw, self.cfg, self.border_px, valid)
+            # the bins with a detected corner give no edgels (a tracked point is a stored feature)
+            edge_uv, edge_n, _strength = detect_edgels(gray, uv_raw[:n_corners], self.cfg, self.border_px, valid)
             if len(edge_uv):
                 edge_n = self._undistorted_normals(edge_uv, edge_n)
                 # the camera's translation since the last step (poses only: a pose-only recording
@@ -421,7 +422,11 @@ class Mapper:
         if tracking:
             # The corners that measured a feature this frame are where the next frame's tracker
             # starts (an edgel slides along its edge under the tracker: not followed).
-            used = np.concatenate([step.matched_measurements, step.initialised_measurements])
+            # A converged feature's point is in the map already: it is not followed (it gives its
+            # slot to new terrain, "Database").
+            done = self.db.ids[self.db.active & self.db.converged]
+            fresh = ~np.isin(step.matched_ids, done)
+            used = np.concatenate([step.matched_measurements[fresh], step.initialised_measurements])
             if normals is not None:
                 used = used[~normals[used].any(axis=1)]
             self._track_from = uv_raw[used].astype(np.float32)
@@ -674,7 +679,10 @@ class Mapper:
         updated = upd[ok]
         db.updates[updated] += 1
         if desc is not None:
-            db.template[updated] = corner_templates
+            # A tracked point updates its feature but not its patch: the appearance check keeps
+            # comparing with what the detector last found, so a track cannot drift with its patch.
+            kept = slice(None) if may_start is None else may_start[match_idx[ok]]
+            db.template[updated[kept]] = corner_templates[kept]
             db.has_template[updated] = True
 
         updated_meas = match_idx[ok]  # measurement of each accepted update
