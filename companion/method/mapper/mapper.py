@@ -350,7 +350,8 @@ class Mapper:
         # edgels; the indices of MapperStep.*_measurements), for diagnostics
         self.last_measurements_raw = np.zeros((0, 2))
         # Tracking between detections: the last frame (grey) and the raw pixels of its corners that
-        # measured a feature (matched or initialised), where this frame's tracker starts from.
+        # measured a feature not yet converged (matched or initialised), where this frame's tracker
+        # starts from.
         self._track_gray: np.ndarray | None = None
         self._track_from = np.zeros((0, 2), dtype=np.float32)
 
@@ -435,7 +436,7 @@ class Mapper:
 
     def _tracked(self, gray: np.ndarray, corners_raw: np.ndarray) -> np.ndarray:
         """Tracking between detections (docs/mapper.md): the last frame's corners that measured a
-        feature, followed into ``gray`` by pyramidal Lucas-Kanade (``track_window_px``,
+        feature not yet converged, followed into ``gray`` by pyramidal Lucas-Kanade (``track_window_px``,
         ``track_levels``), kept where tracking back lands within ``track_max_fb_px`` of the start
         and no detected corner of ``corners_raw`` (K, 2) lies within ``min_distance_px`` (the
         detector found it again). Raw pixels (T, 2)."""
