@@ -634,6 +634,76 @@ def test_the_view_limit_stops_the_vehicle_for_what_the_camera_has_not_seen():
     assert near.speed_limit_mps < near.view_speed_limit_mps == pytest.approx(v)
 
 
+def _carved(origins_n, height_m, reach_m, stop_n=math.inf, end_height_m=0.0):
+    """A map with no heights, only free space: from cameras ``height_m`` up at each north of
+    ``origins_n`` and every half metre east across 15 m, lines of sight due north down to
+    ``end_height_m`` ``reach_m`` ahead, none reaching past ``stop_n`` (as if a wall there hid what
+    lies behind it)."""
+    from companion.method.messages import FreeSpaceRays
+    grid = TerrainGrid()
+    for n0 in origins_n:
+        n_end = min(n0 + reach_m, stop_n)
+        if n_end <= n0:
+            continue
+        z_end = height_m + (end_height_m - height_m) * (n_end - n0) / reach_m
+        for e in np.arange(-7.0, 7.5, 0.5):
+            grid.carve(FreeSpaceRays(0.0, np.array([float(n0), e, -height_m]), np.array([[n_end, e, -z_end]])))
+    return grid
+
+
+def test_the_known_horizon_lets_the_vehicle_fly_on_over_ground_lines_of_sight_have_proven_low():
+    """docs/avoidance.md, "The known horizon": beyond the view distance D the vehicle need only stop
+    before the first corridor cell no line of sight crossed below the heights that would need a
+    climb (h - (1 - s) h_c). Over a corridor proven low to its end, the limit is the stop before
+    the corridor's end; with a strip no line of sight reached (behind a wall), exactly the stop
+    before that strip's nearest cell, brute-forced here from the map's ceilings; lines of sight
+    above those heights prove nothing, and the option off or a proven strip within D changes
+    nothing."""
+    from companion.method.avoidance import entry_distance, known_horizon, view_distance, view_speed_limit
+    base = {f: getattr(CFG, f) for f in CFG.__dataclass_fields__}
+    cfg = AvoidanceConfig(**{**base, "clearance_m": 15.0, "nominal_alt_m": 25.0, "speed_limit_shortfall": 0.1,
+                             "brake_accel_mps2": 2.0, "reaction_time_s": 0.5, "map_latency_s": 1.5,
+                             "view_speed_limit": True, "known_horizon": True, "lookahead_m": 100.0})
+    off = AvoidanceConfig(**{**base, **{f: getattr(cfg, f) for f in cfg.__dataclass_fields__}, "known_horizon": False})
+    dep = math.radians(30.0)
+    d = view_distance(dep, cfg)
+    danger = cfg.nominal_alt_m - 0.9 * cfg.clearance_m  # 11.5 m
+    radius = cfg.miss_distance_m + math.sqrt(0.5)
+    here, vel = [0.0, 0.5, -cfg.nominal_alt_m], [6.0, 0.0, 0.0]
+
+    proven = _carved(range(-40, 110, 2), 11.0, 30.0)  # every line of sight below 11 m
+    cmd = PullUpLaw(cfg).command(here, vel, proven, view_depression_rad=dep)
+    end = cfg.lookahead_m - radius
+    assert cmd.view_speed_limit_mps == pytest.approx(view_speed_limit(end + cfg.miss_distance_m, cfg))
+    assert cmd.view_speed_limit_mps > 2.0 * view_speed_limit(d, cfg)
+    assert PullUpLaw(off).command(here, vel, proven, view_depression_rad=dep).view_speed_limit_mps == pytest.approx(
+        view_speed_limit(d, cfg))
+
+    # A wall at north 60 hides what lies behind it until the vehicle is past it.
+    walled = _carved([n for n in range(-40, 110, 2) if n < 60 or n > 66], 11.0, 30.0, stop_n=60.0)
+    cmd = PullUpLaw(cfg).command(here, vel, walled, view_depression_rad=dep)
+    c = walled.corridor(np.array(here[:2]), np.array([1.0, 0.0]), cfg.lookahead_m, radius)
+    beyond_open = (c.along_m + math.sqrt(0.5) > d) & ~(c.ceiling_m <= danger)  # cells of 1 m reaching past D
+    first = float(entry_distance(c.along_m[beyond_open], c.cross_m[beyond_open], radius).min())
+    assert 50.0 < first < 60.0
+    v = cmd.view_speed_limit_mps
+    tau = cfg.reaction_time_s + cfg.map_latency_s
+    assert v * tau + v * v / (2.0 * cfg.brake_accel_mps2) == pytest.approx(first)
+    assert cmd.known_horizon_m == pytest.approx(first) and cmd.speed_limit_mps == pytest.approx(v)
+    assert known_horizon(c.along_m, c.cross_m, c.ceiling_m, radius, 1.0, d, danger, cfg.lookahead_m) == pytest.approx(first)
+
+    # Lines of sight to a plateau 20 m up cross every cell above the heights that matter.
+    high = _carved(range(-40, 110, 2), 40.0, 30.0, end_height_m=20.0)
+    assert PullUpLaw(cfg).command(here, vel, high, view_depression_rad=dep).view_speed_limit_mps == pytest.approx(
+        view_speed_limit(d, cfg))
+    # Unproven cells within D are in view: they do not shorten the horizon.
+    near_gap = _carved([n for n in range(-40, 110, 2) if not -30 <= n <= 12], 11.0, 30.0)
+    c = near_gap.corridor(np.array(here[:2]), np.array([1.0, 0.0]), cfg.lookahead_m, radius)
+    assert not (c.ceiling_m[(c.along_m > 1.0) & (c.along_m < 15.0)] <= danger).all()
+    assert PullUpLaw(cfg).command(here, vel, near_gap, view_depression_rad=dep).view_speed_limit_mps == pytest.approx(
+        view_speed_limit(end + cfg.miss_distance_m, cfg))
+
+
 def test_the_operator_learns_what_the_mount_allows_in_level_flight():
     """What the daemon warns about at start: the view limit of the configured mount with the body
     level. The default 45 deg mount sees the heights that matter 29 m ahead and allows 6.7 m/s; a

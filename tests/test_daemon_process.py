@@ -270,7 +270,10 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
     for a in limited:  # the view limit (avoidance.view_speed_limit, on by default) bounds the speed limit
         assert a["view_distance_m"] > 0 and a["view_speed_limit_mps"] > 0
         assert a["speed_limit_mps"] <= a["view_speed_limit_mps"] + 1e-3
-    assert set(status["avoidance"]) >= {"speed_limit_mps", "view_distance_m", "view_speed_limit_mps"}
+        # the known horizon (on by default) is published beside it: a distance along track, or null
+        assert "known_horizon_m" in a and (a["known_horizon_m"] is None or a["known_horizon_m"] >= 0.0)
+    assert any(a["known_horizon_m"] is not None for a in limited)
+    assert set(status["avoidance"]) >= {"speed_limit_mps", "view_distance_m", "view_speed_limit_mps", "known_horizon_m"}
     if camera == "synthetic":
         # Frames rendered at SIM_STATE's truth are timed by the attitude it followed in the same
         # simulator step, not by its arrival (docs/mavlink.md, "Simulator truth").

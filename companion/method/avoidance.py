@@ -18,7 +18,8 @@ limit), :func:`nominal_climb_rate` (return to the nominal altitude), :func:`marg
 as high as its estimate plus k sigma), :func:`fill_unknown`, :func:`local_surface` (a cell estimated
 with the surface it belongs to), :func:`law_heights`, the speed limit for a late obstacle
 (:func:`climb_time`, :func:`brake_speed`, :func:`climb_speed_limit`), the speed limit for what the
-camera cannot see yet (:func:`view_distance`, :func:`view_speed_limit`), then :class:`PullUpLaw`.
+camera cannot see yet (:func:`view_distance`, :func:`view_speed_limit`) and how far beyond it lines of
+sight have proven the way low (:func:`known_horizon`), then :class:`PullUpLaw`.
 """
 
 from __future__ import annotations
@@ -128,11 +129,16 @@ class AvoidanceCommand:
         both off, or hovering).
     view_distance_m: how far ahead the camera sees all terrain that would need a climb
         (:func:`view_distance`; inf: the view reaches the horizon, or unknown).
-    view_speed_limit_mps: the speed at which terrain first seen ``view_distance_m`` ahead can still
-        be stopped for (:func:`view_speed_limit`; inf: none, off, or hovering).
+    view_speed_limit_mps: the speed from which the vehicle can still stop for terrain first seen
+        ``view_distance_m`` ahead, or before ``known_horizon_m`` where that is farther
+        (:func:`view_speed_limit`; inf: none, off, or hovering).
     limiting_source_ne: when the limiting cell is unmapped, the centre (north, east) of the mapped
         cell it stands in for (docs/avoidance.md, "Unmapped cells"); None when the limiting cell is
         mapped, or counts at its own floor or ceiling.
+    known_horizon_m: how far along track the vehicle can fly before it comes within the miss
+        distance of terrain beyond the view that no line of sight has proven low
+        (:func:`known_horizon`); the view speed limit stops before the farther of it and the view
+        distance. NaN: not computed (the option or the view limit off, hovering, no view).
     """
 
     climb_rate_mps: float
@@ -148,6 +154,7 @@ class AvoidanceCommand:
     view_distance_m: float = math.inf
     view_speed_limit_mps: float = math.inf
     limiting_source_ne: tuple[float, float] | None = None
+    known_horizon_m: float = math.nan
 
 
 def stand_in_source(along_m: np.ndarray, height_m: np.ndarray, mapped: np.ndarray, i: int, fill_m: float,
@@ -458,6 +465,25 @@ def view_speed_limit(view_distance_m: float, cfg: AvoidanceConfig) -> float:
                              cfg.reaction_time_s + cfg.map_latency_s)[0])
 
 
+def known_horizon(along_m: np.ndarray, cross_m: np.ndarray, ceiling_m: np.ndarray, radius_m: float, cell_m: float,
+                  view_distance_m: float, danger_m: float, lookahead_m: float) -> float:
+    """How far (m, along track) the vehicle can fly before it comes within ``radius_m`` of terrain
+    that may need a climb and that the camera does not see now (docs/avoidance.md, "The known
+    horizon"). Within ``view_distance_m`` the camera sees every such terrain (:func:`view_distance`);
+    beyond it, a cell a line of sight crossed below ``danger_m`` (its ``ceiling_m``: the terrain
+    there is lower) holds none. The horizon is the entry distance (:func:`entry_distance`) of the
+    nearest cell reaching beyond the view (its centre within half a diagonal of ``cell_m`` of it, or
+    past it) with no such ceiling, or of the corridor's end (``lookahead_m - radius_m``) when there
+    is none. Corridor cells (K,): ``along_m`` and ``cross_m`` relative to the vehicle and its
+    direction, ``ceiling_m`` (inf: no line of sight)."""
+    beyond = along_m > view_distance_m - cell_m * math.sqrt(0.5)
+    with np.errstate(invalid="ignore"):
+        unproven = beyond & ~(ceiling_m <= danger_m)
+    if not unproven.any():
+        return max(lookahead_m - radius_m, 0.0)
+    return max(float(entry_distance(along_m[unproven], cross_m[unproven], radius_m).min()), 0.0)
+
+
 class PullUpLaw:
     """The avoidance law of seed 000, section III, on a :class:`TerrainGrid`."""
 
@@ -545,13 +571,22 @@ class PullUpLaw:
             entry = entry_distance(along[ahead], cross[ahead], radius)
             limit = climb_speed_limit(entry, heights[ahead], alt, -v[2], cfg)
         view_m = math.inf if view_depression_rad is None else view_distance(view_depression_rad, cfg)
-        view_limit = math.inf
+        view_limit, horizon = math.inf, math.nan
         if cfg.view_speed_limit and not hover:
-            view_limit = view_speed_limit(view_m, cfg)
+            reach_m = view_m
+            if cfg.known_horizon and math.isfinite(view_m) and corr.ceiling_m is not None:
+                # Beyond the view, stop only before what no line of sight has proven low.
+                ahead_all = corridor_along >= 0.0
+                horizon = known_horizon(corridor_along[ahead_all], corr.cross_m[ahead_all], corr.ceiling_m[ahead_all],
+                                        radius, grid.cell_size_m, view_m,
+                                        alt - cfg.clearance_m * (1.0 - cfg.speed_limit_shortfall),
+                                        cfg.lookahead_m)
+                reach_m = max(view_m, horizon + cfg.miss_distance_m)
+            view_limit = view_speed_limit(reach_m, cfg)
             limit = min(limit, view_limit)
         if idx is None or not engaged:
             return AvoidanceCommand(cmd, w_nom, None, math.nan, math.nan, math.nan, False, unknown_left, holding, limit,
-                                    view_m, view_limit)
+                                    view_m, view_limit, known_horizon_m=horizon)
         h_i = float(heights[idx])
         source = None
         j = int(np.flatnonzero(zone)[idx])  # the limiting cell in the corridor
@@ -575,6 +610,7 @@ class PullUpLaw:
             view_distance_m=view_m,
             view_speed_limit_mps=view_limit,
             limiting_source_ne=source,
+            known_horizon_m=horizon,
         )
 
 

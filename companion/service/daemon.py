@@ -552,6 +552,7 @@ class Daemon:
             "speed_limit_mps": num(cmd.speed_limit_mps),
             "view_distance_m": num(cmd.view_distance_m),
             "view_speed_limit_mps": num(cmd.view_speed_limit_mps),
+            "known_horizon_m": num(cmd.known_horizon_m),
             "setpoint_velocity_ned_mps": [round(float(v), 3) for v in velocity],
             "reason": self.command_state,
             "position_ned_m": None if nav is None else [num(v) for v in nav.position_ned_m],
@@ -635,6 +636,7 @@ class Daemon:
                 "speed_limit_mps": _finite_or_none(self.last_command.speed_limit_mps),
                 "view_distance_m": _finite_or_none(self.last_command.view_distance_m),
                 "view_speed_limit_mps": _finite_or_none(self.last_command.view_speed_limit_mps),
+                "known_horizon_m": _finite_or_none(self.last_command.known_horizon_m),
             },
             "control": {
                 "rate_hz": self.cfg.control.rate_hz, "ticks": self.control_ticks,
