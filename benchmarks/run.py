@@ -36,6 +36,7 @@ PINNING = _pin_before_numpy()
 
 from benchmarks import common, daemon_bench, map_bench, mapper_bench  # noqa: E402 - NumPy after pinning
 from benchmarks.common import fmt, table  # noqa: E402
+from companion.config import MapperConfig  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results.json"
 
@@ -160,6 +161,8 @@ def flight_section(plan: Plan):
 
 
 NO_MAP = "50 no map"  # the 50-feature mapper without the terrain map, beside the headline
+# the 50-feature mapper with the other setting of mapper.flow_rises (rises seen by dense flow)
+FLOW = "50 without flow" if MapperConfig().flow_rises else "50 with flow"
 
 
 def mapper_section(flight, plan: Plan) -> dict:
@@ -172,17 +175,19 @@ def mapper_section(flight, plan: Plan) -> dict:
     print("\n== Mapper step (detect + match + update + initialise + grid insert), one core ==")
     variants = {n: mapper_bench.variant(flight, n, grid=mapper_bench.fresh_grid(flight)) for n in (50, 300)}
     variants[NO_MAP] = mapper_bench.variant(flight, 50)
+    variants[FLOW] = mapper_bench.variant(flight, 50, grid=mapper_bench.fresh_grid(flight), flow=not MapperConfig().flow_rises)
     headline = mapper_bench.run_interleaved(flight, variants, repeats=plan.repeats, with_floor=True)
     rows = []
     for n, h in headline.items():
-        h["n_features"] = 50 if n == NO_MAP else n
+        h["n_features"] = 50 if n in (NO_MAP, FLOW) else n
         rows.append([str(n), h["step_ms"]["median"], h["step_ms"]["p99"], h["fps"], h["step_cpu_ms"]["median"],
                      h["step_cpu_ms"]["p99"], h["fps_cpu"], h["measurements"], h["matched"], h["active"],
                      h["points_per_frame"], h["floor_ratio"]])
     print(table(["features", "median ms", "p99 ms", "frames/s", "cpu med ms", "cpu p99", "cpu frames/s",
                  "meas/frame", "matched", "stored", "points out", "/ Harris"], rows))
     print("  (wall clock; 'cpu' = this thread's CPU time, which leaves out what other processes on this shared "
-          f"machine took from the core; '{NO_MAP}': the 50-feature step without the map's prior and insert)")
+          f"machine took from the core; '{NO_MAP}': the 50-feature step without the map's prior and insert; "
+          f"'{FLOW}': with the other setting of mapper.flow_rises, docs/mapper.md \"Rises seen by dense flow\")")
     h50 = headline[50]
     print(f"floor: cv2.cornerHarris alone median {fmt(h50['harris_ms']['median'])} ms (p99 {fmt(h50['harris_ms']['p99'])}); "
           f"step / Harris = {fmt(h50['floor_ratio'])} (median of per-frame ratios {fmt(h50['floor_ratio_per_frame_median'])}; "
@@ -359,6 +364,7 @@ def headline_values(details: dict) -> tuple[dict, dict]:
         "floor_ratio_cpu": m["50"]["floor_ratio_cpu"],
         "floor_ratio_without_map": m[NO_MAP]["floor_ratio"],
         "mapper_fps_50_without_map": m[NO_MAP]["fps"],
+        "mapper_fps_50_" + FLOW.split(" ", 1)[1].replace(" ", "_"): m[FLOW]["fps"],
         "mapper_step_ms_50": m["50"]["step_ms"],
         "mapper_step_ms_300": m["300"]["step_ms"],
         "frame_to_setpoint_p99_ms_synthetic_camera": get(details["daemon"].get("synthetic_camera"), "frame_to_setpoint_ms", "p99"),

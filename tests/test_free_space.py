@@ -172,6 +172,31 @@ def test_a_floor_follows_the_feature_that_set_it_and_stays_when_the_feature_dies
     assert bounds(plain, 10.5)[1] == pytest.approx(5.0)
 
 
+def test_a_bound_no_feature_owns_stays_and_moves_no_feature_floor():
+    """Rows of feature id -1 (rises seen by dense flow, docs/mapper.md) belong to no feature: a batch
+    of them alone withdraws nothing, they do not move when later rows of -1 bound other cells, and
+    a feature's floor keeps following its feature beside them; a line of sight below ends them."""
+    grid = TerrainGrid()
+
+    def bounds_of(t, rows):
+        return TerrainFloors(t, np.array([r[1:] for r in rows], float), np.array([r[0] for r in rows]))
+
+    grid.raise_floors(bounds_of(0.0, [(7, 10.5, 0.5, -5.0), (7, 10.5, 0.5, -5.0)]))
+    assert bounds(grid, 10.5)[1] == pytest.approx(5.0)
+    # a batch of unowned rows only: two in north 30.5 confirm a floor there, nothing else moves
+    assert grid.raise_floors(bounds_of(0.1, [(-1, 30.5, 0.5, -9.0), (-1, 30.6, 0.4, -8.0)])) == 1
+    assert bounds(grid, 30.5)[1] == pytest.approx(8.0) and bounds(grid, 10.5)[1] == pytest.approx(5.0)
+    # unowned rows elsewhere later: the first unowned floor stays (it does not follow "feature -1")
+    grid.raise_floors(bounds_of(0.2, [(-1, 50.5, 0.5, -4.0), (-1, 50.5, 0.5, -4.0), (7, 10.5, 0.5, -5.0)]))
+    assert bounds(grid, 30.5)[1] == pytest.approx(8.0) and bounds(grid, 50.5)[1] == pytest.approx(4.0)
+    # feature 7 slides to another cell: its floor goes, the unowned ones stay
+    grid.raise_floors(bounds_of(0.3, [(7, 13.5, 0.5, -3.0)]))
+    assert bounds(grid, 10.5)[1] == -np.inf and bounds(grid, 30.5)[1] == pytest.approx(8.0)
+    # a line of sight passing below an unowned floor ends it, as any floor
+    stats = grid.carve(one_ray((34.0, 0.5, 0.0), origin=(20.0, 0.5, -15.0)))  # over north 30.5 at ~3.7 m
+    assert stats.floors_dropped == 1 and bounds(grid, 30.5)[1] == -np.inf
+
+
 def test_a_floor_whose_feature_ended_goes_when_nothing_near_backs_it():
     """docs/terrain.md, "A floor whose feature ended": a feature that confirmed its own bound and
     then left the mapper without converging leaves a floor nothing else says; alone (more than

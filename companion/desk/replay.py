@@ -323,7 +323,7 @@ def run_replay(
     counts = dict(listed=0, processed=0, without_nav=0, unreadable=0, refused=0)
     sums = dict(measurements=0, edgels=0, edge_updates=0, matched=0, initialised=0, removed=0, dropped=0, update_rejected=0, converged_points=0,
                 points_inserted=0, points_rejected_invalid=0, points_rejected_outlier=0, prior_fallback=0,
-                corner_updates=0)
+                corner_updates=0, flow_ranged=0, flow_floors=0)
     nis_sum = 0.0
     path_ne: list[np.ndarray] = []
     frame_times: list[float] = []
@@ -367,6 +367,8 @@ def run_replay(
             sums["prior_fallback"] += step.n_prior_fallback
             sums["edgels"] += step.n_edgels
             sums["edge_updates"] += step.n_edge_matched
+            sums["flow_ranged"] += step.n_flow_ranged
+            sums["flow_floors"] += step.n_flow_floors
             sums["corner_updates"] += step.n_corner_updates
             nis_sum += step.innovation_nis_sum
             sums["converged_points"] += len(step.points)

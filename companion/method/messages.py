@@ -117,7 +117,8 @@ class TerrainFloors:
     """Lower bounds on the terrain's height, handed from the mapper to the terrain map (docs/mapper.md,
     "Bounds of an unconverged feature"): the terrain in the cell of each ``positions_ned_m`` (K, 3)
     row's north and east reaches at least that row's height (``-down``); ``feature_ids`` (K,), the
-    feature each row bounds, lets the map move a floor with its feature (docs/terrain.md, "Floors");
+    feature each row bounds, lets the map move a floor with its feature (docs/terrain.md, "Floors";
+    a negative id: a bound no feature owns, a rise seen by dense flow);
     ``ended_ids`` (E,), the features that left the mapper this step (out of view, replaced, or
     corrupt), lets the map withdraw a floor no longer backed by anything (docs/terrain.md, "A floor
     whose feature ended")."""

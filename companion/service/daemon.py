@@ -208,6 +208,8 @@ class Daemon:
         self.points_converged = 0
         self.edgels_in = 0  # edgels passed to the mapper (docs/mapper.md, "Edgels")
         self.edge_updates = 0  # edge features updated across their edge
+        self.flow_ranged = 0  # lattice points ranged by dense flow (docs/mapper.md, "Rises seen by dense flow")
+        self.flow_floors = 0  # floors given to rising cells
         self.innovation_nis_sum = 0.0  # the filter's consistency (docs/replay.md, "Filter consistency")
         self.corner_updates = 0
         self.point_covariance_scale = 1.0  # the last step's (docs/mapper.md, "Calibrated point covariance")
@@ -410,6 +412,8 @@ class Daemon:
         step = self.mapper.step(nav, frame.image)
         self.edgels_in += step.n_edgels
         self.edge_updates += step.n_edge_matched
+        self.flow_ranged += step.n_flow_ranged
+        self.flow_floors += step.n_flow_floors
         self.innovation_nis_sum += step.innovation_nis_sum
         self.corner_updates += step.n_corner_updates
         self.point_covariance_scale = step.point_covariance_scale
@@ -624,6 +628,7 @@ class Daemon:
                 "frames_mapped": self.frames_mapped, "frames_without_nav": dict(self.frames_no_nav),
                 "errors": self.mapper_errors, "points_converged": self.points_converged,
                 "edgels": self.edgels_in, "edge_updates": self.edge_updates,
+                "flow": {"on": self.cfg.mapper.flow_rises, "ranged": self.flow_ranged, "floors": self.flow_floors},
                 "innovation_nis_mean": None if nis is None else round(nis, 3),
                 "point_covariance_scale": round(self.point_covariance_scale, 3),
                 "step_ms": self.step_ms.summary(), "step_cpu_ms": self.step_cpu_ms.summary(),

@@ -662,7 +662,8 @@ class TerrainGrid:
         and a bound more than ``carve_margin_m`` above the cell's ceiling (a line of sight crossed
         it lower before) lifts nothing, nor waits. With ``floors.feature_ids`` a floor follows the
         feature that set it: once that feature bounds another cell, the floor goes
-        (:meth:`_withdraw_left_floors`). Invalid rows (non-finite, beyond
+        (:meth:`_withdraw_left_floors`); a row with a negative id belongs to no feature (a rise seen
+        by dense flow) and its floor stays until a point or a line of sight ends it. Invalid rows (non-finite, beyond
         ``max_abs_coordinate_m``) are skipped. Returns the number of cells whose floor rose."""
         pts = np.asarray(floors.positions_ned_m, dtype=np.float64).reshape(-1, 3)
         good = np.isfinite(pts).all(axis=1) & (np.abs(pts) <= self.max_abs_coordinate_m).all(axis=1)
@@ -672,7 +673,9 @@ class TerrainGrid:
             return 0
         cells, inv = self._pool_cells(pts[:, 0], pts[:, 1])
         if ids is not None:
-            self._withdraw_left_floors(ids, cells[inv])
+            owned = ids >= 0  # a negative id: a bound no feature owns (dense flow's rises)
+            if owned.any():
+                self._withdraw_left_floors(ids[owned], cells[inv[owned]])
         # A line of sight already crossed the cell below the bound: the terrain there is lower (the
         # same evidence that drops a floor in carve, seen in the other order).
         under_ceiling = -pts[:, 2] - self._offset <= self._c.reshape(-1)[cells][inv] + self.carve_margin_m
@@ -704,8 +707,9 @@ class TerrainGrid:
             top = np.full(len(cells), -1, dtype=np.int64)
             top[inv[order[::-1]]] = ids[order[::-1]]
             keep = ~np.isin(self._fo_cells, cells[raised])
-            c = np.concatenate([self._fo_cells[keep], cells[raised]])
-            o = np.concatenate([self._fo_ids[keep], top[raised]])
+            mine = raised & (top >= 0)  # an unowned bound's floor is nobody's to move
+            c = np.concatenate([self._fo_cells[keep], cells[mine]])
+            o = np.concatenate([self._fo_ids[keep], top[mine]])
             order = np.argsort(c)
             self._fo_cells, self._fo_ids = c[order], o[order]
         waits = pending > np.fmax(old, floor)

@@ -1,0 +1,218 @@
+"""Rises seen by dense optical flow (docs/mapper.md, "Rises seen by dense flow").
+
+The corner mapper measures a surface only where Harris corners stand out among the frame's
+strongest. A face in shade, a mast against bright fields, a wall of dull render have texture, but
+little contrast: their corners lose to the ground's, and the map learns of them metres before the
+vehicle meets them. Dense optical flow needs texture, not contrast. Between the current frame and
+one taken ``s`` frames earlier, both with the navigation's camera pose, the flow of each pixel of a
+lattice gives a second line of sight to the same surface point, and the two lines give its range.
+
+From those points the mapper keeps only what the corners may miss and the law must not: a cell
+whose top stands well above the ground around it in the same frame (a *rise*), seen so in most of
+the last few frames. Such a cell gets a floor, the least the terrain there reaches
+(docs/terrain.md, "Floors"), as a young corner feature's bound does. Heights are compared within
+one frame, so the error a pair of navigation poses puts into every range of that pair (a few
+centimetres of baseline, a few hundredths of a degree of attitude) moves a cell's top and its
+ground together and cancels in the rise.
+
+Everything here is batched numpy and OpenCV on one grey frame; no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from companion.config import MapperConfig
+from companion.method.geometry import PinholeCamera
+
+# OpenCV's DIS optical flow, its fastest preset: 3.2-3.5 ms a 640 x 480 flow on one core of the
+# development machine; the medium preset takes ten times as long, for ranges of the same order
+# within 22 m of the mast's face (docs/quality/notes.md).
+_DIS_PRESET = cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST
+# A pair whose camera moved less than this has no parallax worth a flow (m).
+_MIN_BASELINE_M = 0.3
+# Parallax below this is indistinguishable from the flow's noise (rad): no range.
+_MIN_PARALLAX_RAD = 0.002
+
+
+def triangulate_midpoint(c1: np.ndarray, r1: np.ndarray, c2: np.ndarray, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Range along each line of sight of the first camera to the point nearest both lines, and the
+    parallax between the lines (docs/mapper.md, "Rises seen by dense flow").
+
+    ``c1``, ``c2`` (3,): camera centres; ``r1``, ``r2`` (N, 3): unit directions of the two lines of
+    sight of each point. The point ``c1 + a r1`` nearest the line ``c2 + t r2`` has, with
+    ``b = c2 - c1`` and ``k = r1 . r2``::
+
+        a = (r1 . b - k (r2 . b)) / (1 - k^2)
+
+    (set the derivatives of ``|c1 + a r1 - c2 - t r2|^2`` in ``a`` and ``t`` to zero). Returns
+    ``a`` (N,), NaN where the lines are parallel, and the parallax ``arccos k`` (N,) in radians."""
+    b = np.asarray(c2, dtype=np.float64) - np.asarray(c1, dtype=np.float64)
+    k = np.clip(np.einsum("ij,ij->i", r1, r2), -1.0, 1.0)
+    den = 1.0 - k * k
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = np.where(den > 1e-15, (r1 @ b - k * (r2 @ b)) / den, np.nan)
+    return a, np.arccos(k)
+
+
+def range_sigma(range_m: np.ndarray, parallax_rad: np.ndarray, angle_sigma_rad: float) -> np.ndarray:
+    """Standard deviation (m) of a triangulated range (N,) whose two lines of sight each carry an
+    independent direction error of ``angle_sigma_rad``: ``sqrt(2) r sigma / parallax``.
+
+    In the triangle of the two centres and the point, with the parallax ``alpha`` at the point, a
+    turn ``d`` of the second line moves the point along the first by ``r2 d / sin(alpha)``, and a
+    turn of the first moves it along itself by ``r1 d cos(alpha) / sin(alpha)`` (the sine rule); for
+    the small parallaxes of a forward-moving camera ``r1 ~ r2 = r`` and ``sin(alpha) ~ alpha``."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return math.sqrt(2.0) * np.asarray(range_m) * angle_sigma_rad / np.maximum(parallax_rad, 1e-12)
+
+
+def cell_rises(north_m: np.ndarray, east_m: np.ndarray, height_m: np.ndarray, cell_m: float,
+               ground_radius_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per cell of ``cell_m`` holding two points or more: the index of its second highest point
+    (its top, robust to one wild point), and how far that stands above the ground around it: the
+    lowest of the median heights of the cells within ``ground_radius_m`` (the cell's own included).
+
+    north_m, east_m, height_m: (N,) points of one frame. Returns ``top`` (C,) point indices,
+    ``rise`` (C,) metres, ``cell_ij`` (C, 2) the cells' integer indices."""
+    h = np.asarray(height_m, dtype=np.float64)
+    if len(h) == 0:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2), np.int64)
+    ci = np.floor(np.asarray(north_m) / cell_m).astype(np.int64)
+    cj = np.floor(np.asarray(east_m) / cell_m).astype(np.int64)
+    i0, j0 = int(ci.min()), int(cj.min())
+    ni, nj = int(ci.max()) - i0 + 1, int(cj.max()) - j0 + 1
+    flat = (ci - i0) * nj + (cj - j0)
+    order = np.lexsort((h, flat))  # by cell, then height ascending
+    fs, hs = flat[order], h[order]
+    starts = np.flatnonzero(np.r_[True, fs[1:] != fs[:-1]])
+    ends = np.r_[starts[1:], len(fs)]
+    count = ends - starts
+    median = np.full(ni * nj, np.inf, dtype=np.float32)
+    median[fs[starts]] = hs[starts + (count - 1) // 2]
+    r = int(math.floor(ground_radius_m / cell_m + 1e-9))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    ground = cv2.erode(median.reshape(ni, nj), disc, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf).reshape(-1)
+    two = count >= 2
+    top = order[ends[two] - 2]
+    rise = h[top] - ground[flat[top]].astype(np.float64)
+    return top, rise, np.column_stack([ci[top], cj[top]])
+
+
+@dataclass(frozen=True, slots=True)
+class FlowRises:
+    """One frame's rises: ``floors_ned_m`` (K, 3) the floor of each cell that rose in most of the last
+    frames (its top moved ``floor_sigma`` range sigmas farther along its line of sight), and what the
+    frame measured: ``n_ranged`` points, ``n_rising`` cells rising in this frame."""
+
+    floors_ned_m: np.ndarray
+    n_ranged: int = 0
+    n_rising: int = 0
+
+    @classmethod
+    def empty(cls) -> "FlowRises":
+        return cls(np.zeros((0, 3)))
+
+
+class FlowDepth:
+    """Dense flow against the frames ``flow_frames_apart`` back, ranges on a lattice, rises per cell
+    (module docstring; docs/mapper.md, "Rises seen by dense flow"). One per camera stream."""
+
+    def __init__(self, cfg: MapperConfig, camera: PinholeCamera):
+        self.cfg = cfg
+        self.camera = camera
+        self.separations = tuple(sorted({int(s) for s in cfg.flow_frames_apart if int(s) > 0}))
+        self._frames: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=max(self.separations, default=0) + 1)
+        self._rising: deque[set[tuple[int, int]]] = deque(maxlen=max(cfg.flow_persist_window, 1))
+        self._dis = cv2.DISOpticalFlow_create(_DIS_PRESET)
+        self._lattice: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._lattice_shape: tuple[int, int] | None = None
+        self._frame = 0  # frames seen since the last reset
+
+    def reset(self) -> None:
+        """Forget the frames (a gap in the stream, a refused pose)."""
+        self._frames.clear()
+        self._rising.clear()
+        self._frame = 0
+
+    def _lattice_rays(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The lattice's pixel rows and columns and their camera-frame unit rays (N, 3)."""
+        if self._lattice is None or self._lattice_shape != tuple(shape):
+            step = self.cfg.flow_lattice_px
+            vv, uu = np.mgrid[step // 2:shape[0]:step, step // 2:shape[1]:step]
+            v, u = vv.ravel(), uu.ravel()
+            self._lattice = (v, u, self._unit_rays(np.column_stack([u, v]).astype(np.float64)))
+            self._lattice_shape = tuple(shape)
+        return self._lattice
+
+    def _unit_rays(self, uv_raw: np.ndarray) -> np.ndarray:
+        """Unit rays (N, 3) in the camera frame through raw pixels (N, 2)."""
+        cam = self.camera
+        uv = cam.undistort(uv_raw)
+        rays = np.column_stack([np.ones(len(uv)), (uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy])
+        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+    def ranged(self, gray: np.ndarray, p_c: np.ndarray, R_nc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The lattice points of ``gray`` ranged against the stored frames: positions (N, 3) NED,
+        range sigmas (N,) and unit lines of sight (N, 3) NED, the pairs' points together. Stores the
+        frame (with its camera centre ``p_c`` (3,) and attitude ``R_nc`` (3, 3)) for later ones."""
+        cfg, cam = self.cfg, self.camera
+        H, W = gray.shape
+        v, u, rays_c = self._lattice_rays(gray.shape)
+        r1 = rays_c @ np.asarray(R_nc).T
+        uv = np.column_stack([u, v]).astype(np.float64)
+        angle_sigma = cfg.flow_pixel_sigma_px / cam.fx
+        out_p, out_s, out_r = [], [], []
+        for s in self.separations:
+            if len(self._frames) < s:
+                continue
+            g0, p0, R0 = self._frames[-s]
+            if np.linalg.norm(p0 - p_c) < _MIN_BASELINE_M:
+                continue
+            ahead = self._dis.calc(gray, g0, None)   # this frame -> the earlier one
+            back = self._dis.calc(g0, gray, None)    # and back, for the consistency check
+            f = ahead[v, u].astype(np.float64)
+            uv0 = uv + f
+            inside = (uv0[:, 0] >= 0) & (uv0[:, 0] <= W - 1) & (uv0[:, 1] >= 0) & (uv0[:, 1] <= H - 1)
+            fb = back[np.clip(np.rint(uv0[:, 1]).astype(np.int64), 0, H - 1), np.clip(np.rint(uv0[:, 0]).astype(np.int64), 0, W - 1)]
+            ok = inside & (np.hypot(f[:, 0] + fb[:, 0], f[:, 1] + fb[:, 1]) <= cfg.flow_max_fb_px)
+            r0 = self._unit_rays(uv0) @ np.asarray(R0).T
+            a, parallax = triangulate_midpoint(p_c, r1, p0, r0)
+            sig = range_sigma(a, parallax, angle_sigma)
+            with np.errstate(invalid="ignore"):
+                ok &= (a >= cfg.flow_min_range_m) & (parallax >= _MIN_PARALLAX_RAD) & (sig <= cfg.flow_max_range_sigma_m)
+            out_p.append(p_c + a[ok, None] * r1[ok])
+            out_s.append(sig[ok])
+            out_r.append(r1[ok])
+        self._frames.append((gray.copy(), np.asarray(p_c, dtype=np.float64).copy(), np.asarray(R_nc, dtype=np.float64).copy()))
+        if not out_p:
+            return np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3))
+        return np.concatenate(out_p), np.concatenate(out_s), np.concatenate(out_r)
+
+    def step(self, gray: np.ndarray, p_c: np.ndarray, R_nc: np.ndarray) -> FlowRises:
+        """One frame: its ranged points (:meth:`ranged`), the cells rising more than
+        ``flow_min_rise_m`` above the ground around them (:func:`cell_rises`), and a floor for each
+        that rose in at least ``flow_persist_frames`` of the last ``flow_persist_window`` frames
+        measured. Only every ``flow_every_frames``-th frame is measured; the others are stored for
+        later pairs and give nothing."""
+        cfg = self.cfg
+        self._frame += 1
+        if (self._frame - 1) % cfg.flow_every_frames:
+            self._frames.append((gray.copy(), np.asarray(p_c, dtype=np.float64).copy(), np.asarray(R_nc, dtype=np.float64).copy()))
+            return FlowRises.empty()
+        pts, sig, rays = self.ranged(gray, p_c, R_nc)
+        top, rise, ij = cell_rises(pts[:, 0], pts[:, 1], -pts[:, 2], cfg.flow_cell_m, cfg.flow_ground_radius_m)
+        up = rise > cfg.flow_min_rise_m
+        cells = [tuple(c) for c in ij[up].tolist()]
+        self._rising.append(set(cells))
+        votes = np.array([sum(c in seen for seen in self._rising) for c in cells], dtype=np.int64)
+        held = top[up][votes >= cfg.flow_persist_frames]
+        # the lower end of the top's range interval: farther along a line of sight that looks down
+        floors = pts[held] + (cfg.floor_sigma * sig[held])[:, None] * rays[held]
+        floors = np.where((rays[held, 2] > 0)[:, None], floors, pts[held])
+        return FlowRises(floors, n_ranged=len(pts), n_rising=len(cells))
