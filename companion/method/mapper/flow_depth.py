@@ -157,6 +157,10 @@ class FlowDepth:
         rays = np.column_stack([np.ones(len(uv)), (uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy])
         return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
+    def _remember(self, gray: np.ndarray, p_c: np.ndarray, R_nc: np.ndarray) -> None:
+        """Keep the frame and its camera pose for the pairs of later frames."""
+        self._frames.append((gray.copy(), np.asarray(p_c, dtype=np.float64).copy(), np.asarray(R_nc, dtype=np.float64).copy()))
+
     def ranged(self, gray: np.ndarray, p_c: np.ndarray, R_nc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The lattice points of ``gray`` ranged against the stored frames: positions (N, 3) NED,
         range sigmas (N,) and unit lines of sight (N, 3) NED, the pairs' points together. Stores the
@@ -172,8 +176,8 @@ class FlowDepth:
             if len(self._frames) < s:
                 continue
             g0, p0, R0 = self._frames[-s]
-            if np.linalg.norm(p0 - p_c) < _MIN_BASELINE_M:
-                continue
+            if g0.shape != gray.shape or np.linalg.norm(p0 - p_c) < _MIN_BASELINE_M:
+                continue  # a stream whose frame size changed, or a camera that hardly moved
             ahead = self._dis.calc(gray, g0, None)   # this frame -> the earlier one
             back = self._dis.calc(g0, gray, None)    # and back, for the consistency check
             f = ahead[v, u].astype(np.float64)
@@ -189,7 +193,7 @@ class FlowDepth:
             out_p.append(p_c + a[ok, None] * r1[ok])
             out_s.append(sig[ok])
             out_r.append(r1[ok])
-        self._frames.append((gray.copy(), np.asarray(p_c, dtype=np.float64).copy(), np.asarray(R_nc, dtype=np.float64).copy()))
+        self._remember(gray, p_c, R_nc)
         if not out_p:
             return np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3))
         return np.concatenate(out_p), np.concatenate(out_s), np.concatenate(out_r)
@@ -203,7 +207,7 @@ class FlowDepth:
         cfg = self.cfg
         self._frame += 1
         if (self._frame - 1) % cfg.flow_every_frames:
-            self._frames.append((gray.copy(), np.asarray(p_c, dtype=np.float64).copy(), np.asarray(R_nc, dtype=np.float64).copy()))
+            self._remember(gray, p_c, R_nc)
             return FlowRises.empty()
         pts, sig, rays = self.ranged(gray, p_c, R_nc)
         top, rise, ij = cell_rises(pts[:, 0], pts[:, 1], -pts[:, 2], cfg.flow_cell_m, cfg.flow_ground_radius_m)
