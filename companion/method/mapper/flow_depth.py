@@ -152,10 +152,7 @@ class FlowDepth:
 
     def _unit_rays(self, uv_raw: np.ndarray) -> np.ndarray:
         """Unit rays (N, 3) in the camera frame through raw pixels (N, 2)."""
-        cam = self.camera
-        uv = cam.undistort(uv_raw)
-        rays = np.column_stack([np.ones(len(uv)), (uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy])
-        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+        return self.camera.ray(self.camera.undistort(uv_raw))
 
     def _remember(self, gray: np.ndarray, p_c: np.ndarray, R_nc: np.ndarray) -> None:
         """Keep the frame and its camera pose for the pairs of later frames."""
@@ -182,7 +179,7 @@ class FlowDepth:
             back = self._dis.calc(g0, gray, None)    # and back, for the consistency check
             f = ahead[v, u].astype(np.float64)
             uv0 = uv + f
-            inside = (uv0[:, 0] >= 0) & (uv0[:, 0] <= W - 1) & (uv0[:, 1] >= 0) & (uv0[:, 1] <= H - 1)
+            inside = cam.in_image(uv0)
             fb = back[np.clip(np.rint(uv0[:, 1]).astype(np.int64), 0, H - 1), np.clip(np.rint(uv0[:, 0]).astype(np.int64), 0, W - 1)]
             ok = inside & (np.hypot(f[:, 0] + fb[:, 0], f[:, 1] + fb[:, 1]) <= cfg.flow_max_fb_px)
             r0 = self._unit_rays(uv0) @ np.asarray(R0).T
