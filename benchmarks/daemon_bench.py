@@ -190,7 +190,7 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
                          sim_cores: str = "0", switch_interval_s: float | None = None,
                          keep_samples: str | None = None, worker_policy: str = "default",
                          mapper_process: bool = False, camera: str = "stream",
-                         realtime_priority: int = VEHICLE_REALTIME_PRIORITY) -> dict:
+                         realtime_priority: int = VEHICLE_REALTIME_PRIORITY, flow: bool | None = None) -> dict:
     """Fly the circuit with the daemon mapping at ``rate_hz`` for ``duration_s`` after take-off;
     returns the daemon's control figures (and what went wrong, if anything).
 
@@ -206,14 +206,17 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
     (``companion sim --camera-listen``; the camera has its own hardware, as on a vehicle);
     "synthetic" = the daemon renders them itself from SIM_STATE, in its own process.
     ``realtime_priority``: the daemon's ``control.realtime_priority`` (the vehicle's setting, as the
-    service unit allows it; 0 = normal scheduling); what the daemon got is in ``realtime``."""
+    service unit allows it; 0 = normal scheduling); what the daemon got is in ``realtime``.
+    ``flow``: the daemon's ``mapper.flow_rises`` (None = the configuration's; its own thread beside
+    the mapper's, on the daemon's one core here)."""
     if camera not in ("stream", "synthetic"):
         raise ValueError(f"camera must be 'stream' or 'synthetic', got {camera!r}")
     from drivers.sim.harness import MavClient, SimVehicleProcess
 
     result: dict = {"duration_s": duration_s, "camera_rate_hz": rate_hz, "error": "", "daemon_cores": daemon_cores,
                     "sim_cores": sim_cores, "switch_interval_s": switch_interval_s, "worker_policy": worker_policy,
-                    "mapper_process": mapper_process, "camera": camera, "realtime_priority": realtime_priority}
+                    "mapper_process": mapper_process, "camera": camera, "realtime_priority": realtime_priority,
+                    "flow": flow}
     tmp = tempfile.TemporaryDirectory(prefix="companion-bench-")
     pilot_client = MavClient.udp_listener()
     sim = SimVehicleProcess(["--flavour", "ardupilot", "--scenario", "default", "--tcp-listen", "127.0.0.1:0",
@@ -230,6 +233,8 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
         zenoh_port = free_port()
         cfg = daemon_config(sim.endpoints["tcp"], zenoh_port, os.path.join(tmp.name, "map"), rate_hz)
         cfg.setdefault("control", {})["realtime_priority"] = int(realtime_priority)
+        if flow is not None:
+            cfg.setdefault("mapper", {})["flow_rises"] = bool(flow)
         if switch_interval_s is not None:  # 0: Python's default (5 ms)
             cfg.setdefault("control", {})["gil_switch_interval_ms"] = 1e3 * switch_interval_s
         if camera == "stream":
@@ -271,6 +276,7 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
             realtime=control.get("realtime"),
             mapper_step_ms=mapper.get("step_ms"),
             mapper_step_cpu_ms=mapper.get("step_cpu_ms"),
+            flow_status=mapper.get("flow"),
             frames_mapped=mapper.get("frames_mapped"),
             frames_in=status.get("camera", {}).get("frames"),
             queue_dropped=status.get("camera", {}).get("queue_dropped"),

@@ -10,7 +10,6 @@ converged points), one core, OpenCV single-threaded, on the frames of
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable
 from contextlib import ExitStack, contextmanager, nullcontext
@@ -28,12 +27,9 @@ from companion.method.mapper.appearance import FramePatches
 from companion.method.mapper.features import HarrisDetector
 
 
-def new_mapper(flight: Flight, n_features: int, depth_prior=None, flow: bool | None = None) -> Mapper:
-    """A mapper of ``n_features`` with the flight's configuration; ``flow`` sets ``mapper.flow_rises``
-    (None: the configuration's)."""
+def new_mapper(flight: Flight, n_features: int, depth_prior=None) -> Mapper:
+    """A mapper of ``n_features`` with the flight's configuration."""
     cfg = mapper_config(n_features, flight.cfg.mapper)
-    if flow is not None:
-        cfg = dataclasses.replace(cfg, flow_rises=flow)
     return Mapper(cfg, flight.camera, flight.mount, depth_prior=depth_prior,
                   default_ground_alt_m=flight.cfg.terrain.default_ground_alt_m, border_px=flight.cfg.camera.border_px)
 
@@ -58,9 +54,9 @@ class Variant:
     context: Callable[[], object] | None = None
 
 
-def variant(flight: Flight, n_features: int, grid=None, loop: bool = False, flow: bool | None = None) -> Variant:
+def variant(flight: Flight, n_features: int, grid=None, loop: bool = False) -> Variant:
     def make(prior=None):
-        m = new_mapper(flight, n_features, prior, flow)
+        m = new_mapper(flight, n_features, prior)
         if loop:
             m.model = reference_loop.loop_model()
         return m

@@ -36,7 +36,6 @@ PINNING = _pin_before_numpy()
 
 from benchmarks import common, daemon_bench, map_bench, mapper_bench  # noqa: E402 - NumPy after pinning
 from benchmarks.common import fmt, table  # noqa: E402
-from companion.config import MapperConfig  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results.json"
 
@@ -115,6 +114,7 @@ def main(argv=None) -> int:
     sections = [
         ("flight", lambda: flight_section(plan)),
         ("mapper", lambda: mapper_section(flight, plan)),
+        ("flow", lambda: flow_section(flight, plan)),
         ("scaling", lambda: scaling_section(flight, plan)),
         ("profile", lambda: profile_section(flight, plan, args.profile)),
         ("batched_vs_loop", lambda: loop_section(flight, plan)),
@@ -161,8 +161,6 @@ def flight_section(plan: Plan):
 
 
 NO_MAP = "50 no map"  # the 50-feature mapper without the terrain map, beside the headline
-# the 50-feature mapper with the other setting of mapper.flow_rises (rises seen by dense flow)
-FLOW = "50 without flow" if MapperConfig().flow_rises else "50 with flow"
 
 
 def mapper_section(flight, plan: Plan) -> dict:
@@ -175,25 +173,61 @@ def mapper_section(flight, plan: Plan) -> dict:
     print("\n== Mapper step (detect + match + update + initialise + grid insert), one core ==")
     variants = {n: mapper_bench.variant(flight, n, grid=mapper_bench.fresh_grid(flight)) for n in (50, 300)}
     variants[NO_MAP] = mapper_bench.variant(flight, 50)
-    variants[FLOW] = mapper_bench.variant(flight, 50, grid=mapper_bench.fresh_grid(flight), flow=not MapperConfig().flow_rises)
     headline = mapper_bench.run_interleaved(flight, variants, repeats=plan.repeats, with_floor=True)
     rows = []
     for n, h in headline.items():
-        h["n_features"] = 50 if n in (NO_MAP, FLOW) else n
+        h["n_features"] = 50 if n == NO_MAP else n
         rows.append([str(n), h["step_ms"]["median"], h["step_ms"]["p99"], h["fps"], h["step_cpu_ms"]["median"],
                      h["step_cpu_ms"]["p99"], h["fps_cpu"], h["measurements"], h["matched"], h["active"],
                      h["points_per_frame"], h["floor_ratio"]])
     print(table(["features", "median ms", "p99 ms", "frames/s", "cpu med ms", "cpu p99", "cpu frames/s",
                  "meas/frame", "matched", "stored", "points out", "/ Harris"], rows))
     print("  (wall clock; 'cpu' = this thread's CPU time, which leaves out what other processes on this shared "
-          f"machine took from the core; '{NO_MAP}': the 50-feature step without the map's prior and insert; "
-          f"'{FLOW}': with the other setting of mapper.flow_rises, docs/mapper.md \"Rises seen by dense flow\")")
+          f"machine took from the core; '{NO_MAP}': the 50-feature step without the map's prior and insert)")
     h50 = headline[50]
     print(f"floor: cv2.cornerHarris alone median {fmt(h50['harris_ms']['median'])} ms (p99 {fmt(h50['harris_ms']['p99'])}); "
           f"step / Harris = {fmt(h50['floor_ratio'])} (median of per-frame ratios {fmt(h50['floor_ratio_per_frame_median'])}; "
           f"CPU time: Harris {fmt(h50['harris_cpu_ms']['median'])} ms, ratio {fmt(h50['floor_ratio_cpu'])}); "
           f"without the map {fmt(headline[NO_MAP]['floor_ratio'])}")
     return {str(n): _public(h) for n, h in headline.items()}
+
+
+def flow_section(flight, plan: Plan) -> dict:
+    """The dense-flow stage (``FlowRanger.step``, docs/mapper.md, "Rises seen by dense flow") frame by
+    frame beside the 50-feature mapper step, interleaved on the same core, with the configured
+    ``mapper.flow_every_frames``: the time of a measured frame, the mean over all frames (a frame
+    not measured is stored only), and the ratio of the means to the mapper's. The service runs the
+    stage in a thread of its own, off the path from a frame to its setpoint."""
+    from companion.method.mapper.flow_depth import FlowRanger
+
+    cfg = flight.cfg.mapper
+    every = cfg.flow_every_frames
+    print(f"\n== Dense-flow stage beside the mapper (every {every} frame(s) measured, pairs {cfg.flow_frames_apart} "
+          "frames apart), one core, interleaved ==")
+    measured, stored, mapper_ms = [], [], []
+    for _ in range(plan.repeats):
+        ranger = FlowRanger(cfg, flight.camera, flight.mount)
+        mapper = mapper_bench.new_mapper(flight, 50)
+        for k in range(len(flight)):
+            t0 = time.perf_counter()
+            mapper.step(flight.navs[k], flight.images[k])
+            t1 = time.perf_counter()
+            step = ranger.step(flight.navs[k], flight.images[k])
+            t2 = time.perf_counter()
+            mapper_ms.append((t1 - t0) * 1e3)
+            (measured if step.measured else stored).append((t2 - t1) * 1e3)
+    per_frame = (sum(measured) + sum(stored)) / max(1, len(measured) + len(stored))
+    m = common.summary(mapper_ms)
+    out = {"every_frames": every, "measured_ms": common.summary(measured), "stored_ms": common.summary(stored),
+           "mean_per_frame_ms": per_frame, "mapper_50_ms": m,
+           "ratio_to_mapper": per_frame / m["mean"], "frames_per_s": 1e3 / per_frame}
+    print(table(["stage", "median ms", "p99 ms", "mean ms / frame", "frames/s"],
+                [["flow, measured frames", out["measured_ms"]["median"], out["measured_ms"]["p99"], None, None],
+                 ["flow, every frame", None, None, per_frame, out["frames_per_s"]],
+                 ["mapper, 50 features", m["median"], m["p99"], m["mean"], 1e3 / m["mean"]]]))
+    print(f"  flow / mapper (means per frame, same run): {fmt(out['ratio_to_mapper'])}; the service runs the flow in a "
+          "thread of its own, so its time is not in the mapper's frames/s nor in frame -> setpoint")
+    return out
 
 
 def scaling_section(flight, plan: Plan) -> list:
@@ -301,6 +335,9 @@ def daemon_section(plan: Plan, args) -> dict:
     if runs > 1:
         print("\n  p99 of each run: frame -> setpoint " + ", ".join(fmt(_p99(r, "frame_to_setpoint_ms")) for r in out["runs"])
               + " ms; jitter " + ", ".join(fmt(_p99(r, "jitter_ms")) for r in out["runs"]) + " ms (headline: the medians)")
+    print("\n  again without the dense flow's thread (mapper.flow_rises: false), for what it costs the loop:")
+    out["without_flow"] = daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print, camera="stream", flow=False)
+    _print_daemon(out["without_flow"])
     print("\n  again with the camera rendered in the daemon's own process from SIM_STATE (camera.source: synthetic):")
     out["synthetic_camera"] = daemon_bench.run_daemon_benchmark(seconds, 30.0, log=print, camera="synthetic")
     _print_daemon(out["synthetic_camera"])
@@ -364,9 +401,13 @@ def headline_values(details: dict) -> tuple[dict, dict]:
         "floor_ratio_cpu": m["50"]["floor_ratio_cpu"],
         "floor_ratio_without_map": m[NO_MAP]["floor_ratio"],
         "mapper_fps_50_without_map": m[NO_MAP]["fps"],
-        "mapper_fps_50_" + FLOW.split(" ", 1)[1].replace(" ", "_"): m[FLOW]["fps"],
+        "flow_ms_per_frame": details["flow"]["mean_per_frame_ms"],
+        "flow_ms_measured_frame": details["flow"]["measured_ms"]["median"],
+        "flow_to_mapper_ratio": details["flow"]["ratio_to_mapper"],
         "mapper_step_ms_50": m["50"]["step_ms"],
         "mapper_step_ms_300": m["300"]["step_ms"],
+        "frame_to_setpoint_p99_ms_without_flow": get(details["daemon"].get("without_flow"), "frame_to_setpoint_ms", "p99"),
+        "control_jitter_p99_ms_without_flow": get(details["daemon"].get("without_flow"), "jitter_ms", "p99"),
         "frame_to_setpoint_p99_ms_synthetic_camera": get(details["daemon"].get("synthetic_camera"), "frame_to_setpoint_ms", "p99"),
         "control_jitter_p99_ms_synthetic_camera": get(details["daemon"].get("synthetic_camera"), "jitter_ms", "p99"),
         "frame_to_setpoint_p99_ms_steady": get(steady, "frame_to_setpoint_ms", "p99"),
@@ -392,6 +433,8 @@ def print_targets(values: dict, extra: dict) -> None:
     print(table(["key", "measured", "target", "", "what"], rows))
     print(f"memory per km2 observed at 1 m cells: {fmt(extra['memory_MB_per_km2_square'])} MB (1 km square), "
           f"{fmt(extra['memory_MB_per_km2_strip'])} MB (10 km x 100 m strip)")
+    print(f"without the dense flow's thread: frame -> setpoint p99 {fmt(extra['frame_to_setpoint_p99_ms_without_flow'])} ms, "
+          f"jitter p99 {fmt(extra['control_jitter_p99_ms_without_flow'])} ms (the headline flies with it, on the daemon's one core)")
     print(f"with the camera rendered in the daemon's process instead (synthetic): frame -> setpoint p99 "
           f"{fmt(extra['frame_to_setpoint_p99_ms_synthetic_camera'])} ms, jitter p99 "
           f"{fmt(extra['control_jitter_p99_ms_synthetic_camera'])} ms")
@@ -439,6 +482,13 @@ def _print_daemon(d: dict) -> None:
                   f"while the mapper thread was stepping (chance alone: {100 * lt['chance_fraction']:.0f} %)")
     print(f"  frames {d.get('frames_in')} in, {d.get('frames_mapped')} mapped, {d.get('queue_dropped')} dropped by the "
           f"queue; {d.get('points_converged')} points converged; command state: {d.get('command')}")
+    fl = d.get("flow_status") or {}
+    if fl.get("on"):
+        step, to_map = fl.get("step_ms") or {}, fl.get("frame_to_map_ms") or {}
+        print(f"  dense flow (its own thread, nice {fl.get('thread_nice')}): {fl.get('frames_measured')} frames measured, "
+              f"{fl.get('queue_dropped')} dropped by its queue, {fl.get('floors')} floors; step p50 / p99 "
+              f"{fmt(step.get('p50'))} / {fmt(step.get('p99'))} ms, capture -> floors in the map p50 / p99 "
+              f"{fmt(to_map.get('p50'))} / {fmt(to_map.get('p99'))} ms")
     rt = d.get("realtime")
     print("  control loop thread: " + ("normal scheduling (control.realtime_priority: 0)" if not rt else
           f"SCHED_FIFO priority {rt['priority']}" if rt.get("active") else f"normal scheduling ({rt.get('reason')})"))

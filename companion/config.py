@@ -167,10 +167,10 @@ class MapperConfig:
     free_space_sigma: float = _f(3.0, "sigma", 0.0, 10.0, "free space for the map's carving: each updated feature's line of sight up to the nearest it can be at this many sigma (inverse depth: rho + k sigma_rho); 0 = none")
     nav_attitude_correlation_s: float = _f(10.0, "s", 0.0, 1e6, "features live in the autopilot's estimated frame, which drifts between frames: "
                                            "attitude as a Gauss-Markov error with this correlation time, (1 - exp(-2 dt / this)) P_att; 0 = the paper's independent P_x every frame")
-    flow_rises: bool = _f(False, doc="range a lattice of pixels by dense optical flow against earlier frames and give a floor to each cell whose top stands flow_min_rise_m above the ground around it in most of the last frames: a face whose corners lose to the ground's (a mast in shade) warns the law at the range the flow sees it (docs/mapper.md, \"Rises seen by dense flow\"); false = corners and edgels only")
+    flow_rises: bool = _f(True, doc="range a lattice of pixels by dense optical flow against earlier frames and give a floor to each cell whose top stands flow_min_rise_m above the ground around it in most of the last frames: a face whose corners lose to the ground's (a mast in shade) warns the law at the range the flow sees it (docs/mapper.md, \"Rises seen by dense flow\"); the service runs it in a thread of its own beside the mapper's; false = corners and edgels only")
     flow_frames_apart: tuple[int, ...] = _f((3, 10), "frames", doc="the earlier frames each frame's flow is measured against (a near one ranges what moves fast in the image, a far one gives the parallax for far surfaces)")
     flow_lattice_px: int = _f(8, "px", 2, 64, "spacing of the pixels ranged by the flow")
-    flow_every_frames: int = _f(1, "frames", 1, 100, "measure the flow on every this many frames (each pair costs two flows, one each way, about 3.5 ms each at 640 x 480 on one core); the votes below count the frames measured")
+    flow_every_frames: int = _f(2, "frames", 1, 100, "measure the flow on every this many frames (each pair costs two flows, one each way, about 3.5 ms each at 640 x 480 on one core); the others are kept for later pairs; the votes below count the frames measured")
     flow_pixel_sigma_px: float = _f(0.7, "px", 0.01, 100.0, "error of a flow vector's end, per line of sight, in the range's sigma")
     flow_max_fb_px: float = _f(0.7, "px", 0.0, 100.0, "a pixel is ranged only if its flow into the earlier frame and back lands within this of where it started (occlusions and slid matches fail)")
     flow_min_range_m: float = _f(10.0, "m", 0.0, 1e4, "ranges nearer than this are not used (a wrong flow's lines of sight cross near the camera, with a small sigma)")
@@ -180,6 +180,7 @@ class MapperConfig:
     flow_min_rise_m: float = _f(2.0, "m", 0.0, 1e4, "a cell rises when its top (second highest point) stands more than this above its ground")
     flow_persist_frames: int = _f(3, "frames", 1, 1000, "a rising cell gets a floor once it rose in this many of the last flow_persist_window frames (one pair's wrong flow or pose does not)")
     flow_persist_window: int = _f(5, "frames", 1, 1000, "the frames that vote on a rise")
+    flow_thread_nice: int = _f(10, "", 0, 19, "the service runs the dense flow in a thread of its own at this nice value (Linux): where it shares a core with the mapper's thread, the mapper's frames go first and the flow takes what is left; 0 = the same priority")
 
 
 @dataclass(frozen=True, slots=True)

@@ -136,3 +136,30 @@ def test_every_map_update_gets_one_frame_to_setpoint_sample_at_the_first_setpoin
     asyncio.run(main())
     assert d.control_ticks > 0
     assert d.control_jitter_ms.summary()["n"] == d.control_ticks
+
+
+def test_the_frame_queue_is_idle_only_when_its_worker_has_finished_every_frame():
+    """The dense flow's thread waits for the mapper's queue to be idle before a measured frame's
+    flows: a frame put makes it busy, the worker's ``done`` after a frame makes it idle again only
+    when no other frame waits, and a waiting thread wakes when it does."""
+    import threading
+
+    from companion.method.messages import Frame
+    from companion.service.daemon import FrameQueue
+
+    q = FrameQueue(maxlen=2)
+    assert q.idle.is_set()
+    frames = [Frame(t_s=float(k), image=np.zeros((4, 4), np.uint8), sequence=k) for k in range(2)]
+    q.put(frames[0])
+    q.put(frames[1])
+    assert not q.idle.is_set()
+    woke = threading.Event()
+    waiter = threading.Thread(target=lambda: q.idle.wait(10.0) and woke.set())
+    waiter.start()
+    assert q.get(0.1) is frames[0]
+    q.done()
+    assert not q.idle.is_set()  # the second frame still waits
+    assert q.get(0.1) is frames[1]
+    q.done()
+    waiter.join(10.0)
+    assert q.idle.is_set() and woke.is_set()

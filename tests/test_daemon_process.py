@@ -310,6 +310,13 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
           f"90th percentile {np.percentile(np.abs(err), 90):.2f} m; control {status['control']}; "
           f"frames mapped {status['mapper']['frames_mapped']}, dropped {status['camera']['queue_dropped']}")
     assert err.size > 200
+    # The dense flow (on by default) ran in its own thread on the same frames: it measured frames,
+    # ranged lattice points on them, and failed on none (a busy machine drops some of its frames).
+    flow = status["mapper"]["flow"]
+    print(f"dense flow: {flow['frames_measured']} frames measured, {flow['ranged']} points ranged, {flow['floors']} floors, "
+          f"step {flow['step_ms']}, capture -> map {flow['frame_to_map_ms']}, dropped {flow['queue_dropped']}")
+    assert flow["on"] and flow["errors"] == 0 and flow["frames_measured"] > 0 and flow["ranged"] > 0
+    assert flow["thread_nice"] >= 10  # below the mapper's thread (mapper.flow_thread_nice)
     # the filter's consistency, as the operator reads it in the status (docs/replay.md, "Filter consistency")
     nis = status["mapper"]["innovation_nis_mean"]
     print(f"mean innovation squared of the corner updates {nis} (2 = consistent)")

@@ -14,8 +14,8 @@ from benchmarks.common import camera_from_config
 from companion.desk.quality.scenarios import flight_config
 from companion.method.geometry import matrix_to_quat
 from companion.method.mapper import Mapper
-from companion.method.mapper.flow_depth import FlowDepth, cell_rises, range_sigma, triangulate_midpoint
-from companion.method.messages import NavState
+from companion.method.mapper.flow_depth import FlowDepth, FlowRanger, cell_rises, range_sigma, triangulate_midpoint
+from companion.method.messages import NavState, TerrainPoints
 from companion.method.terrain import TerrainGrid
 
 RATE_HZ = 15.0
@@ -160,43 +160,49 @@ def test_the_mast_gets_floors_twenty_metres_before_its_face_and_the_ground_none(
     assert not elsewhere or max(elsewhere) <= 0.5
 
 
-def test_the_mapper_hands_the_rises_to_the_map_as_floors_no_feature_owns(approach):
-    """The mapper with ``flow_rises`` on, fed the approach with the true poses: its steps carry the
-    rises as floors of feature id -1, and the terrain grid fed those steps holds the mast's cell
-    at 8 m or more while the vehicle is still 15 m from the face; with it off, the corners alone
-    leave the mast's cells without a floor or a height."""
+def test_the_flow_stage_hands_the_rises_to_the_map_as_floors_no_feature_owns(approach):
+    """The corner mapper and, beside it, the flow stage (:class:`FlowRanger`, as the service and the
+    quality suite run them), fed the approach with the true poses: the flow's floors are rows of
+    feature id -1, and the terrain grid fed both holds the mast's cell at 8 m or more while the
+    vehicle is still 15 m from the face; the corners alone leave the mast's cells without a floor or
+    a height."""
     _, cfg, camera, mount, frames = approach
 
     def fly(on: bool):
-        mapper = Mapper(dataclasses.replace(cfg.mapper, flow_rises=on), camera, mount, border_px=cfg.camera.border_px)
+        mapper = Mapper(cfg.mapper, camera, mount, border_px=cfg.camera.border_px)
+        flow = FlowRanger(cfg.mapper, camera, mount) if on else None
         grid = TerrainGrid.from_config(cfg.terrain)
-        unowned = ranged = given = 0
+        owned = unowned = ranged = measured = 0
         for k, (p, _, _, image, _) in enumerate(frames):
             nav = NavState(k / RATE_HZ, p, np.array([SPEED_MPS, 0.0, 0.0]), matrix_to_quat(np.eye(3)), np.diag([0.01] * 3 + [0.01] * 3 + [1e-6] * 3))
             step = mapper.step(nav, image)
-            if step.floors.feature_ids is not None:
-                unowned += int(np.count_nonzero(step.floors.feature_ids == -1))
-            ranged += step.n_flow_ranged
-            given += step.n_flow_floors
             grid.add_evidence(step.points, step.free_space, step.floors)
+            if flow is not None:
+                rises = flow.step(nav, image)
+                owned += int(np.count_nonzero(rises.floors.feature_ids != -1))
+                unowned += int(np.count_nonzero(rises.floors.feature_ids == -1))
+                ranged += rises.n_ranged
+                measured += rises.measured
+                grid.add_evidence(TerrainPoints.empty(nav.t_s), None, rises.floors)
             if FACE_N - p[0] <= 15.0:
                 break
         corridor = grid.corridor(np.array([FACE_N - 0.5, 0.0]), np.array([1.0, 0.0]), 3.0, 1.6)
         top = np.fmax(np.nan_to_num(corridor.height_m, nan=-np.inf), corridor.floor_m).max()
-        assert given == unowned  # every floor the flow gives is a row no feature owns
-        return unowned, ranged, top
+        assert owned == 0  # every floor the flow gives is a row no feature owns
+        return k + 1, measured, unowned, ranged, top
 
-    unowned, ranged, top = fly(True)
+    frames_flown, measured, unowned, ranged, top = fly(True)
+    assert measured == math.ceil(frames_flown / cfg.mapper.flow_every_frames)
     assert ranged > 1000 and unowned > 0 and top >= 8.0
-    unowned, ranged, top = fly(False)
-    assert ranged == 0 and unowned == 0 and not top > 2.0
+    _, _, unowned, ranged, top = fly(False)
+    assert not top > 2.0
 
 
 def test_a_vote_count_no_window_can_hold_is_refused_naming_both_settings(approach):
     _, cfg, camera, mount, _ = approach
     bad = dataclasses.replace(cfg.mapper, flow_rises=True, flow_persist_frames=6, flow_persist_window=5)
     with pytest.raises(ValueError, match="flow_persist_frames.*flow_persist_window"):
-        Mapper(bad, camera, mount)
+        FlowRanger(bad, camera, mount)
 
 
 def test_frames_between_measured_ones_are_kept_for_later_pairs_and_a_refused_pose_forgets_them(approach):
@@ -209,13 +215,13 @@ def test_frames_between_measured_ones_are_kept_for_later_pairs_and_a_refused_pos
     counts = [flow.step(_gray(image), p_c, R_nc).n_ranged for _, p_c, R_nc, image, _ in frames[:8]]
     assert counts[1::2] == [0, 0, 0, 0] and counts[0] == 0  # skipped frames; the first has no pair
     assert all(c > 100 for c in counts[4::2])  # frames 5 and 7 range against frames 2 and 4
-    mapper = Mapper(dataclasses.replace(loose, flow_rises=True), camera, mount)
+    ranger = FlowRanger(dataclasses.replace(loose, flow_every_frames=1), camera, mount)
     cov = np.diag([0.01] * 6 + [1e-6] * 3)
     for k, (p, _, _, image, _) in enumerate(frames[:5]):
-        step = mapper.step(NavState(k / RATE_HZ, p, np.array([SPEED_MPS, 0.0, 0.0]), matrix_to_quat(np.eye(3)), cov), image)
-    assert step.n_flow_ranged > 100
-    refused = mapper.step(NavState(5 / RATE_HZ, np.array([np.nan, 0.0, -ALT_M]), np.zeros(3), matrix_to_quat(np.eye(3)), cov), frames[5][3])
-    assert refused.rejected_reason
+        step = ranger.step(NavState(k / RATE_HZ, p, np.array([SPEED_MPS, 0.0, 0.0]), matrix_to_quat(np.eye(3)), cov), image)
+    assert step.measured and step.n_ranged > 100 and not step.refused
+    refused = ranger.step(NavState(5 / RATE_HZ, np.array([np.nan, 0.0, -ALT_M]), np.zeros(3), matrix_to_quat(np.eye(3)), cov), frames[5][3])
+    assert refused.refused == "nav not finite" and refused.n_ranged == 0
     p = frames[6][0]
-    after = mapper.step(NavState(6 / RATE_HZ, p, np.array([SPEED_MPS, 0.0, 0.0]), matrix_to_quat(np.eye(3)), cov), frames[6][3])
-    assert after.n_flow_ranged == 0
+    after = ranger.step(NavState(6 / RATE_HZ, p, np.array([SPEED_MPS, 0.0, 0.0]), matrix_to_quat(np.eye(3)), cov), frames[6][3])
+    assert after.measured and after.n_ranged == 0

@@ -96,6 +96,24 @@ def test_io_threads_go_one_priority_below_the_loop():
         assert io == lowest == realtime.Scheduling(os.SCHED_OTHER, 0)
 
 
+def test_yield_to_others_lowers_only_the_calling_thread():
+    """The dense flow's thread lowers itself (mapper.flow_thread_nice): its own nice value changes,
+    never back up, and the thread that started it keeps its own."""
+    mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    if mine >= 19:
+        pytest.skip("the test runs at nice 19 already: there is no lower priority to take")
+    target = min(19, mine + 7)
+
+    def body():
+        got, why = realtime.yield_to_others(target)
+        again = realtime.yield_to_others(0)  # never back up: a thread already nicer keeps its own
+        return got, why, again, os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    got, why, again, theirs = on_new_thread(body)
+    assert why == "" and got == theirs == target and again == (target, "")
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == mine
+
+
 def test_a_refusal_leaves_the_thread_as_it_was_and_says_how_to_allow_it(monkeypatch):
     def refuse(*_):
         raise PermissionError(1, "Operation not permitted")

@@ -40,6 +40,8 @@ from companion.desk.recordings.colmap import export_colmap
 from companion.desk.recordings.tum import export_tum
 from companion.method.mapper import Mapper, mean_innovation_squared
 from companion.method.mapper.features import HarrisDetector
+from companion.method.mapper.flow_depth import FlowRanger
+from companion.method.messages import TerrainPoints
 from companion.method.terrain.grid import TerrainGrid
 
 METRICS_JSON = "metrics.json"
@@ -311,6 +313,8 @@ def run_replay(
     output.mkdir(parents=True, exist_ok=True)
     grid = TerrainGrid.from_config(cfg.terrain)
     mapper = build_mapper(cfg, recording, grid, mask)
+    # rises seen by dense flow: the stage beside the mapper, as the service runs it
+    flow = FlowRanger(cfg.mapper, recording.camera, recording.mount) if cfg.mapper.flow_rises else None
     total = len(recording) if max_frames is None else min(len(recording), max_frames)
     bar = None
     if progress:
@@ -338,6 +342,8 @@ def run_replay(
             counts["without_nav"] += 1
             _count(nav_reasons, reason_key(sample.nav_problem))
             examples.setdefault(reason_key(sample.nav_problem), sample.nav_problem)
+            if flow is not None:
+                flow.reset()  # a pair across the gap would range with a pose nobody has
         elif sample.frame is None:
             counts["unreadable"] += 1
             _count(image_problems, sample.image_problem.split(": ", 1)[-1])
@@ -347,6 +353,12 @@ def run_replay(
             a = time.perf_counter()
             step = mapper.step(sample.nav, image)
             stats = grid.add_evidence(step.points, step.free_space, step.floors)
+            if flow is not None:
+                rises = flow.step(sample.nav, image)
+                sums["flow_ranged"] += rises.n_ranged
+                sums["flow_floors"] += len(rises.floors)
+                if len(rises.floors):
+                    grid.add_evidence(TerrainPoints.empty(rises.floors.t_s), None, rises.floors)
             mapper_s += time.perf_counter() - a
             if step.rejected_reason:
                 counts["refused"] += 1
@@ -367,8 +379,6 @@ def run_replay(
             sums["prior_fallback"] += step.n_prior_fallback
             sums["edgels"] += step.n_edgels
             sums["edge_updates"] += step.n_edge_matched
-            sums["flow_ranged"] += step.n_flow_ranged
-            sums["flow_floors"] += step.n_flow_floors
             sums["corner_updates"] += step.n_corner_updates
             nis_sum += step.innovation_nis_sum
             sums["converged_points"] += len(step.points)

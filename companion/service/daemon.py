@@ -43,7 +43,8 @@ from companion.method.avoidance import AvoidanceCommand
 from companion.method.control import Controller, level_flight_view_limit
 from companion.method.geometry import camera_from_config
 from companion.method.mapper import Mapper, mean_innovation_squared
-from companion.method.messages import Frame, NavState
+from companion.method.mapper.flow_depth import FlowRanger
+from companion.method.messages import Frame, NavState, TerrainPoints
 from companion.method.terrain.codec import TilePublications
 from companion.method.terrain.grid import TerrainGrid
 from companion.method.terrain.persistence import count_known_cells, load_latest, snapshot_bytes, write_snapshot_bytes
@@ -65,6 +66,10 @@ class _Shutdown(Exception):
     """Raised inside the TaskGroup to end every task together."""
 
 
+# Frames waiting for the dense flow's thread; beyond it the oldest is dropped (counted): a pair then
+# spans more time, which the poses account for.
+FLOW_QUEUE_FRAMES = 8
+FLOW_WAIT_S = 0.1  # the longest a measured frame's flow waits for the mapper to be idle
 STATUS_WINDOW_S = 30.0  # the status figures cover this much recent time: how the service runs now
 
 
@@ -102,20 +107,32 @@ class Percentiles:
 
 
 class FrameQueue:
-    """Bounded queue between the camera task and the mapper thread that drops the oldest frame."""
+    """Bounded queue between the camera task and a worker thread that drops the oldest frame.
+
+    ``idle`` is set while the worker has finished every frame put (it calls :meth:`done` after
+    each): another thread can wait for it to use the worker's idle time."""
 
     def __init__(self, maxlen: int = 2):
         self._frames: collections.deque[Frame] = collections.deque(maxlen=maxlen)
         self._cond = threading.Condition()
         self.dropped = 0
         self.closed = False
+        self.idle = threading.Event()
+        self.idle.set()
 
     def put(self, frame: Frame) -> None:
         with self._cond:
             if len(self._frames) == self._frames.maxlen:
                 self.dropped += 1
             self._frames.append(frame)
+            self.idle.clear()
             self._cond.notify()
+
+    def done(self) -> None:
+        """The worker finished a frame: idle again if none is waiting."""
+        with self._cond:
+            if not self._frames:
+                self.idle.set()
 
     def get(self, timeout_s: float) -> Frame | None:
         with self._cond:
@@ -185,6 +202,15 @@ class Daemon:
         self.notifier = SystemdNotifier()
         self.record_dir = record_dir
         self.frames = FrameQueue(maxlen=2)
+        # Rises seen by dense flow (mapper.flow_rises; docs/mapper.md): a stage of its own, in a thread of
+        # its own beside the mapper's, so its flows run on the other core and never delay a frame's
+        # corners on their way to the setpoint. It keeps earlier frames itself, so it gets every frame
+        # (a deeper queue: storing a frame it does not measure costs a copy).
+        self.flow: FlowRanger | None = None
+        if cfg.mapper.flow_rises:
+            self.flow = FlowRanger(cfg.mapper, self.camera_model, self.mount)
+        self.flow_frames = FrameQueue(maxlen=FLOW_QUEUE_FRAMES)
+        self._flow_thread: threading.Thread | None = None
         # control.realtime_priority: what the loop's thread got ({priority, active, reason}; None: not asked)
         self.realtime_state: dict | None = None
         self._snapshot_executor: concurrent.futures.ThreadPoolExecutor | None = None
@@ -208,8 +234,14 @@ class Daemon:
         self.points_converged = 0
         self.edgels_in = 0  # edgels passed to the mapper (docs/mapper.md, "Edgels")
         self.edge_updates = 0  # edge features updated across their edge
-        self.flow_ranged = 0  # lattice points ranged by dense flow (docs/mapper.md, "Rises seen by dense flow")
-        self.flow_floors = 0  # floors given to rising cells
+        self.flow_measured = 0  # frames the dense flow measured (docs/mapper.md, "Rises seen by dense flow")
+        self.flow_ranged = 0  # lattice points it ranged
+        self.flow_floors = 0  # floors it gave to rising cells
+        self.flow_errors = 0
+        self.flow_thread_nice: int | None = None  # the flow thread's nice value (None: not started, or unknown)
+        self.flow_no_nav: collections.Counter[str] = collections.Counter()
+        self.flow_step_ms = Percentiles()  # a measured frame's flow, ranging and votes
+        self.flow_to_map_ms = Percentiles()  # capture of a measured frame to its floors in the map
         self.innovation_nis_sum = 0.0  # the filter's consistency (docs/replay.md, "Filter consistency")
         self.corner_updates = 0
         self.point_covariance_scale = 1.0  # the last step's (docs/mapper.md, "Calibrated point covariance")
@@ -381,6 +413,8 @@ class Daemon:
             self.camera_state, self.camera_error = "ok", ""
             self.frames_in += 1
             self.frames.put(frame)
+            if self.flow is not None:
+                self.flow_frames.put(frame)
             if self.recorder is not None:
                 self.recorder.submit(frame)
 
@@ -401,6 +435,54 @@ class Daemon:
             except Exception:  # noqa: BLE001
                 self.mapper_errors += 1
                 log.exception("mapper: frame %d failed; continuing with the next frame", frame.sequence)
+            finally:
+                self.frames.done()
+
+    def _flow_worker(self) -> None:
+        """Worker thread: frames -> dense flow -> floors in the terrain grid (docs/mapper.md, "Rises seen
+        by dense flow"). One bad frame never stops the others."""
+        self.flow_thread_nice, why = realtime.yield_to_others(self.cfg.mapper.flow_thread_nice)
+        if why:
+            log.warning("flow: thread at the mapper's priority (mapper.flow_thread_nice %d not applied: %s)",
+                        self.cfg.mapper.flow_thread_nice, why)
+        while not self.flow_frames.closed:
+            frame = self.flow_frames.get(timeout_s=0.2)
+            if frame is None:
+                continue
+            if self.flow.will_measure():
+                # A measured frame's flows take two to three of the mapper's steps: started while the
+                # mapper is idle (just after a step), they fill the time until its next frame instead of
+                # competing with it for a shared core and Python's lock. A mapper that stays busy
+                # (more frames than it can map) holds the flow back at most FLOW_WAIT_S.
+                self.frames.idle.wait(FLOW_WAIT_S)
+            try:
+                self._flow_frame(frame)
+            except Exception:  # noqa: BLE001
+                self.flow_errors += 1
+                log.exception("flow: frame %d failed; continuing with the next frame", frame.sequence)
+
+    def _flow_frame(self, frame: Frame) -> None:
+        lookup = self.link.nav_buffer.lookup(frame.t_s)
+        if lookup.nav is None:
+            self.flow_no_nav[lookup.reason or "no navigation"] += 1
+            self.flow.reset()  # a pair across the gap would range with a pose nobody has
+            return
+        t0 = time.perf_counter()
+        step = self.flow.step(lookup.nav, frame.image)
+        if step.refused:
+            self.flow_no_nav[step.refused] += 1
+        if not step.measured:
+            return
+        self.flow_measured += 1
+        self.flow_ranged += step.n_ranged
+        self.flow_floors += len(step.floors)
+        self.flow_step_ms.add((time.perf_counter() - t0) * 1e3)
+        if len(step.floors):
+            with self.grid_lock:
+                self.grid.add_evidence(TerrainPoints.empty(step.floors.t_s), None, step.floors)
+            self.flow_to_map_ms.add(max(0.0, self.clock.wall_seconds(self.clock.now() - frame.t_s)) * 1e3)
+            if self._loop is not None:
+                self._loop.call_soon_threadsafe(self._map_updated.set)  # the law reads the floors at once
 
     def _map_frame(self, frame: Frame) -> None:
         lookup = self.link.nav_buffer.lookup(frame.t_s)
@@ -412,8 +494,6 @@ class Daemon:
         step = self.mapper.step(nav, frame.image)
         self.edgels_in += step.n_edgels
         self.edge_updates += step.n_edge_matched
-        self.flow_ranged += step.n_flow_ranged
-        self.flow_floors += step.n_flow_floors
         self.innovation_nis_sum += step.innovation_nis_sum
         self.corner_updates += step.n_corner_updates
         self.point_covariance_scale = step.point_covariance_scale
@@ -628,7 +708,10 @@ class Daemon:
                 "frames_mapped": self.frames_mapped, "frames_without_nav": dict(self.frames_no_nav),
                 "errors": self.mapper_errors, "points_converged": self.points_converged,
                 "edgels": self.edgels_in, "edge_updates": self.edge_updates,
-                "flow": {"on": self.cfg.mapper.flow_rises, "ranged": self.flow_ranged, "floors": self.flow_floors},
+                "flow": {"on": self.flow is not None, "thread_nice": self.flow_thread_nice, "frames_measured": self.flow_measured,
+                         "ranged": self.flow_ranged, "floors": self.flow_floors, "errors": self.flow_errors,
+                         "frames_without_nav": dict(self.flow_no_nav), "queue_dropped": self.flow_frames.dropped,
+                         "step_ms": self.flow_step_ms.summary(), "frame_to_map_ms": self.flow_to_map_ms.summary()},
                 "innovation_nis_mean": None if nis is None else round(nis, 3),
                 "point_covariance_scale": round(self.point_covariance_scale, 3),
                 "step_ms": self.step_ms.summary(), "step_cpu_ms": self.step_cpu_ms.summary(),
@@ -739,6 +822,9 @@ class Daemon:
             self.link.record_telemetry(self.recorder.telemetry_path)
         self._mapper_thread = threading.Thread(target=self._mapper_worker, name="mapper", daemon=True)
         self._mapper_thread.start()
+        if self.flow is not None:
+            self._flow_thread = threading.Thread(target=self._flow_worker, name="flow", daemon=True)
+            self._flow_thread.start()
         scheduling_before = self._enter_realtime()  # after the threads that must stay at normal priority
         self.notifier.ready("starting: waiting for the autopilot")
         log.info("companion running: link %s, camera %s, mapper %s, commanding %s",
@@ -788,8 +874,11 @@ class Daemon:
     async def _shutdown(self) -> None:
         self.notifier.stopping()
         self.frames.close()
+        self.flow_frames.close()
         if self._mapper_thread is not None:
             await asyncio.to_thread(self._mapper_thread.join, 2.0)
+        if self._flow_thread is not None:
+            await asyncio.to_thread(self._flow_thread.join, 2.0)
         if isinstance(self.mapper, MapperProcess):
             await asyncio.to_thread(self.mapper.close, 1.0)
         saved = await self._save_snapshot_in_background()

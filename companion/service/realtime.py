@@ -105,3 +105,23 @@ def normal_scheduling() -> None:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except OSError:
         pass
+
+
+def yield_to_others(nice: int) -> tuple[int | None, str]:
+    """Raise the calling thread's nice value to ``nice`` (0-19; Linux gives each thread its own; a
+    thread already nicer keeps its own): on a core it shares with normal threads of nice 0, the
+    kernel then gives them the core first (at nice 10 a thread gets about a tenth of a core they
+    both want). For bulk work beside the mapper: the dense flow's thread. Returns the thread's nice
+    value after (None where unknown) and why it was not set ("" when it was). Raising one's own
+    nice value needs no privilege."""
+    if not hasattr(os, "setpriority"):
+        return None, "thread priorities are not supported on this platform"
+    import threading
+
+    tid = threading.get_native_id()
+    try:
+        if os.getpriority(os.PRIO_PROCESS, tid) < int(nice):
+            os.setpriority(os.PRIO_PROCESS, tid, int(nice))
+        return os.getpriority(os.PRIO_PROCESS, tid), ""
+    except OSError as exc:
+        return None, f"setpriority refused: {exc.strerror or exc}"

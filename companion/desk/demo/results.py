@@ -97,6 +97,7 @@ def run_metrics(rec: RunRecord, world, obstacle, clearance_m: float) -> dict[str
         "map_tiles": (st.get("map") or {}).get("tiles"),
         "service": {
             "mapper_step_ms": mapper.get("step_ms"),
+            "flow": mapper.get("flow"),
             "frame_to_setpoint_ms": control.get("frame_to_setpoint_ms"),
             "control_jitter_ms": control.get("jitter_ms"),
             "control_rate_hz": control.get("rate_hz"),
@@ -228,6 +229,11 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
         frames, dropped = run.get("frames") or 0, run.get("frames_dropped") or 0
         if frames and dropped > DROPPED_WARN * frames:
             out.append(f"{'':>13}  warning: the service dropped {100 * dropped / frames:.0f}% of the camera frames "
+                       f"(busy machine or --speedup {metrics['speedup']:g} too high for it): try a lower --speedup")
+        flow = (run.get("service") or {}).get("flow") or {}
+        flow_dropped = flow.get("queue_dropped") or 0
+        if frames and flow.get("on") and flow_dropped > DROPPED_WARN * frames:
+            out.append(f"{'':>13}  warning: the dense flow dropped {100 * flow_dropped / frames:.0f}% of the camera frames "
                        f"(busy machine or --speedup {metrics['speedup']:g} too high for it): try a lower --speedup")
     return out
 

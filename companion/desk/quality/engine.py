@@ -40,7 +40,8 @@ from companion.method.control import Controller
 from companion.method.geometry import camera_from_config
 from companion.method.mapper import Mapper, mean_innovation_squared
 from companion.method.mapper.features import HarrisDetector
-from companion.method.messages import NavState
+from companion.method.mapper.flow_depth import FlowRanger
+from companion.method.messages import NavState, TerrainPoints
 from companion.method.navigation.assembler import NavAssembler
 from companion.method.terrain.grid import TerrainGrid
 
@@ -225,6 +226,8 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
                     depth_prior=lambda origin, rays: grid.ray_range(origin, rays, cfg.mapper.prior_max_range_m),
                     default_ground_alt_m=cfg.terrain.default_ground_alt_m,
                     detector=HarrisDetector(cfg.mapper, camera.width, camera.height, cfg.camera.border_px))
+    # rises seen by dense flow: the stage beside the mapper (the service runs it in its own thread)
+    flow = FlowRanger(cfg.mapper, camera, mount) if cfg.mapper.flow_rises else None
     controller = Controller(cfg)
     assembler = NavAssembler(cfg.nav)
     obstacles = {o.name: footprint_cell_centres(o.footprint_ne_m, grid.cell_size_m, grid.cell_size_m)
@@ -323,6 +326,10 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
                     pts = p_c[None, :] + r[hit, None] * (rays[hit] / np.linalg.norm(rays[hit], axis=1, keepdims=True))
                     out.swath.append(np.floor(pts[:, :2] / grid.cell_size_m).astype(np.int64))
                 grid.add_evidence(step.points, step.free_space, step.floors)
+                if flow is not None:
+                    rises = flow.step(nav_f, image)
+                    if len(rises.floors):
+                        grid.add_evidence(TerrainPoints.empty(rises.floors.t_s), None, rises.floors)
                 rec.points_converged += len(step.points)
                 rec.innovation_nis_sum += step.innovation_nis_sum
                 rec.corner_updates += step.n_corner_updates

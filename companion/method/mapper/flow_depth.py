@@ -15,6 +15,10 @@ one frame, so the error a pair of navigation poses puts into every range of that
 centimetres of baseline, a few hundredths of a degree of attitude) moves a cell's top and its
 ground together and cancels in the rise.
 
+The ranger is a stage of its own beside the corner mapper (:class:`FlowRanger`: navigation state
+and image in, floors out): it shares nothing with the mapper's features, so the service runs it in a
+thread of its own on the other core, off the path from a frame to its setpoint.
+
 Everything here is batched numpy and OpenCV on one grey frame; no I/O.
 """
 
@@ -28,7 +32,11 @@ import cv2
 import numpy as np
 
 from companion.config import MapperConfig
-from companion.method.geometry import PinholeCamera
+from companion.method.geometry import CameraMount, PinholeCamera
+from companion.method.mapper.features import as_gray
+from companion.method.mapper.mapper import check_nav
+from companion.method.mapper.projection import CameraPose
+from companion.method.messages import NavState, TerrainFloors
 
 # OpenCV's DIS optical flow, its fastest preset: 3.2-3.5 ms a 640 x 480 flow on one core of the
 # development machine; the medium preset takes ten times as long, for ranges of the same order
@@ -195,6 +203,10 @@ class FlowDepth:
             return np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3))
         return np.concatenate(out_p), np.concatenate(out_s), np.concatenate(out_r)
 
+    def will_measure(self) -> bool:
+        """Whether the next frame given to :meth:`step` is one the flow measures."""
+        return self._frame % self.cfg.flow_every_frames == 0
+
     def step(self, gray: np.ndarray, p_c: np.ndarray, R_nc: np.ndarray) -> FlowRises:
         """One frame: its ranged points (:meth:`ranged`), the cells rising more than
         ``flow_min_rise_m`` above the ground around them (:func:`cell_rises`), and a floor for each
@@ -217,3 +229,58 @@ class FlowDepth:
         floors = pts[held] + (cfg.floor_sigma * sig[held])[:, None] * rays[held]
         floors = np.where((rays[held, 2] > 0)[:, None], floors, pts[held])
         return FlowRises(floors, n_ranged=len(pts), n_rising=len(cells))
+
+
+@dataclass(frozen=True, slots=True)
+class FlowStep:
+    """What :meth:`FlowRanger.step` gives for one frame: ``floors``, the rising cells' floors as rows
+    no feature owns (feature id -1, docs/terrain.md, "A bound no feature owns"), ready for
+    ``TerrainGrid.add_evidence``; ``n_ranged`` lattice points ranged, ``n_rising`` cells rising in
+    this frame; ``measured``: whether this frame was one the flow measured (every
+    ``flow_every_frames``-th); ``refused``: why the navigation state was not used ("" when it was)."""
+
+    floors: TerrainFloors
+    n_ranged: int = 0
+    n_rising: int = 0
+    measured: bool = False
+    refused: str = ""
+
+
+class FlowRanger:
+    """The dense-flow stage: ``step(nav, image) -> FlowStep``, one per camera stream, beside the
+    corner mapper (module docstring). A navigation state the mapper would refuse (not finite, a
+    covariance not symmetric positive semi-definite) is refused here too, and the stored frames are
+    forgotten: a pair across it would range with a pose nobody trusts."""
+
+    def __init__(self, cfg: MapperConfig, camera: PinholeCamera, mount: CameraMount):
+        if cfg.flow_persist_frames > cfg.flow_persist_window:
+            raise ValueError(f"mapper.flow_persist_frames ({cfg.flow_persist_frames}) must not exceed "
+                             f"mapper.flow_persist_window ({cfg.flow_persist_window}): no cell could ever get a floor")
+        self.mount = mount
+        self.depth = FlowDepth(cfg, camera)
+
+    def reset(self) -> None:
+        """Forget the stored frames and the cells' votes (a gap in the stream, a map reset)."""
+        self.depth.reset()
+
+    def will_measure(self) -> bool:
+        """Whether the next frame given to :meth:`step` is one the flow measures (a stored frame
+        costs a copy; a measured one its flows)."""
+        return self.depth.will_measure()
+
+    def step(self, nav: NavState, image: np.ndarray) -> FlowStep:
+        """Range ``image`` ((H, W) grey or (H, W, 3) BGR uint8) taken at ``nav`` against the stored
+        frames and return the floors of the cells that rose (:meth:`FlowDepth.step`)."""
+        t_s = float(nav.t_s) if math.isfinite(nav.t_s) else 0.0
+        image = np.asarray(image)
+        if image.ndim not in (2, 3):
+            raise ValueError(f"flow image must be (H, W) or (H, W, 3), got shape {image.shape}")
+        reason = check_nav(nav)
+        if reason:
+            self.depth.reset()
+            return FlowStep(TerrainFloors.empty(t_s), refused=reason)
+        pose = CameraPose.from_nav(nav.position_ned_m, nav.quaternion_wxyz, self.mount)
+        measured = self.will_measure()
+        rises = self.depth.step(as_gray(image), pose.p_c, pose.R_nc)
+        floors = TerrainFloors(t_s, rises.floors_ned_m, feature_ids=np.full(len(rises.floors_ned_m), -1, dtype=np.int64))
+        return FlowStep(floors, n_ranged=rises.n_ranged, n_rising=rises.n_rising, measured=measured)

@@ -127,9 +127,6 @@ class MapperStep:
     conservative the filter is, measured").
     point_covariance_scale: the factor the step's points' covariances were scaled by
     (:class:`ConsistencyScale`; 1 = the filter's own).
-    n_flow_ranged, n_flow_rising, n_flow_floors: with ``mapper.flow_rises``, the lattice points the
-    dense flow ranged, the cells rising in this frame and the floors given (rows of ``floors`` with
-    feature id -1; docs/mapper.md, "Rises seen by dense flow").
     """
 
     points: TerrainPoints
@@ -158,9 +155,6 @@ class MapperStep:
     innovation_nis_sum: float = 0.0
     n_corner_updates: int = 0
     point_covariance_scale: float = 1.0
-    n_flow_ranged: int = 0
-    n_flow_rising: int = 0
-    n_flow_floors: int = 0
 
 
 class ConsistencyScale:
@@ -331,9 +325,6 @@ class Mapper:
             raise ValueError(f"mapper.parameterisation must be one of {sorted(PARAMETERISATIONS)}, got {cfg.parameterisation!r}")
         if cfg.prior_min_range_m >= cfg.prior_max_range_m:
             raise ValueError("mapper.prior_min_range_m must be below mapper.prior_max_range_m")
-        if cfg.flow_persist_frames > cfg.flow_persist_window:
-            raise ValueError(f"mapper.flow_persist_frames ({cfg.flow_persist_frames}) must not exceed "
-                             f"mapper.flow_persist_window ({cfg.flow_persist_window}): no cell could ever get a floor")
         self.cfg = cfg
         self.camera = camera
         self.mount = mount
@@ -363,12 +354,6 @@ class Mapper:
         # starts from.
         self._track_gray: np.ndarray | None = None
         self._track_from = np.zeros((0, 2), dtype=np.float32)
-        # Rises seen by dense flow (docs/mapper.md): the earlier frames and the cells' votes.
-        self.flow = None
-        if cfg.flow_rises:
-            from companion.method.mapper.flow_depth import FlowDepth  # OpenCV's flow: imported only when used
-
-            self.flow = FlowDepth(cfg, camera)
 
     # ------------------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -376,8 +361,6 @@ class Mapper:
         self.db.clear()
         self._last_nav_t = np.inf
         self._track_gray = None
-        if self.flow is not None:
-            self.flow.reset()
 
 
     def step(self, nav: NavState, image: np.ndarray) -> MapperStep:
@@ -389,8 +372,6 @@ class Mapper:
         reason, P_x = _checked_pose_covariance(nav)
         if reason:
             self._track_gray = None  # no step: the next frame has nothing to track from
-            if self.flow is not None:
-                self.flow.reset()  # nor a pose to range against
             return self._refused(nav, 0, reason)
         if self.detector is not None:
             uv_raw, _scores = self.detector(image)
@@ -400,7 +381,7 @@ class Mapper:
         normals = None
         tracking = self.cfg.track_window_px > 0
         n_tracked = 0
-        if self.cfg.max_edgels > 0 or self.cfg.appearance_patch_px > 0 or tracking or self.flow is not None:
+        if self.cfg.max_edgels > 0 or self.cfg.appearance_patch_px > 0 or tracking:
             from companion.method.mapper.features import as_gray, detect_edgels
 
             gray = as_gray(image)
@@ -451,23 +432,7 @@ class Mapper:
                 used = used[~normals[used].any(axis=1)]
             self._track_from = uv_raw[used].astype(np.float32)
             self._track_gray = gray.copy()
-        if self.flow is not None:
-            step = self._with_flow_rises(step, nav, gray)
         return step
-
-    def _with_flow_rises(self, step: MapperStep, nav: NavState, gray: np.ndarray) -> MapperStep:
-        """The step with this frame's rises seen by dense flow (docs/mapper.md) added to its floors,
-        as rows no feature owns (feature id -1: they do not move with a feature, and a converged
-        point or a line of sight below ends them as any floor)."""
-        pose = CameraPose.from_nav(nav.position_ned_m, nav.quaternion_wxyz, self.mount)
-        rises = self.flow.step(gray, pose.p_c, pose.R_nc)
-        floors = step.floors
-        if len(rises.floors_ned_m):
-            ids = floors.feature_ids if floors.feature_ids is not None else np.full(len(floors), -1, dtype=np.int64)
-            floors = replace(floors, positions_ned_m=np.concatenate([floors.positions_ned_m.reshape(-1, 3), rises.floors_ned_m]),
-                             feature_ids=np.concatenate([ids, np.full(len(rises.floors_ned_m), -1, dtype=np.int64)]))
-        return replace(step, floors=floors, n_flow_ranged=rises.n_ranged, n_flow_rising=rises.n_rising,
-                       n_flow_floors=len(rises.floors_ned_m))
 
     def _tracked(self, gray: np.ndarray, corners_raw: np.ndarray) -> np.ndarray:
         """Tracking between detections (docs/mapper.md): the last frame's corners that measured a
