@@ -15,7 +15,7 @@ from companion.desk.quality.scenarios import flight_config
 from companion.method.geometry import matrix_to_quat
 from companion.method.mapper import Mapper
 from companion.method.mapper.flow_depth import FlowDepth, FlowRanger, cell_rises, range_sigma, triangulate_midpoint
-from companion.method.messages import NavState, TerrainPoints
+from companion.method.messages import NavState
 from companion.method.terrain import TerrainGrid
 
 RATE_HZ = 15.0
@@ -183,7 +183,7 @@ def test_the_flow_stage_hands_the_rises_to_the_map_as_floors_no_feature_owns(app
                 unowned += int(np.count_nonzero(rises.floors.feature_ids == -1))
                 ranged += rises.n_ranged
                 measured += rises.measured
-                grid.add_evidence(TerrainPoints.empty(nav.t_s), None, rises.floors)
+                grid.raise_floors(rises.floors)
             if FACE_N - p[0] <= 15.0:
                 break
         corridor = grid.corridor(np.array([FACE_N - 0.5, 0.0]), np.array([1.0, 0.0]), 3.0, 1.6)

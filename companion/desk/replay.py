@@ -41,7 +41,6 @@ from companion.desk.recordings.tum import export_tum
 from companion.method.mapper import Mapper, mean_innovation_squared
 from companion.method.mapper.features import HarrisDetector
 from companion.method.mapper.flow_depth import FlowRanger
-from companion.method.messages import TerrainPoints
 from companion.method.terrain.grid import TerrainGrid
 
 METRICS_JSON = "metrics.json"
@@ -358,7 +357,7 @@ def run_replay(
                 sums["flow_ranged"] += rises.n_ranged
                 sums["flow_floors"] += len(rises.floors)
                 if len(rises.floors):
-                    grid.add_evidence(TerrainPoints.empty(rises.floors.t_s), None, rises.floors)
+                    grid.raise_floors(rises.floors)
             mapper_s += time.perf_counter() - a
             if step.rejected_reason:
                 counts["refused"] += 1

@@ -44,7 +44,7 @@ from companion.method.control import Controller, level_flight_view_limit
 from companion.method.geometry import camera_from_config
 from companion.method.mapper import Mapper, mean_innovation_squared
 from companion.method.mapper.flow_depth import FlowRanger
-from companion.method.messages import Frame, NavState, TerrainPoints
+from companion.method.messages import Frame, NavState
 from companion.method.terrain.codec import TilePublications
 from companion.method.terrain.grid import TerrainGrid
 from companion.method.terrain.persistence import count_known_cells, load_latest, snapshot_bytes, write_snapshot_bytes
@@ -479,7 +479,7 @@ class Daemon:
         self.flow_step_ms.add((time.perf_counter() - t0) * 1e3)
         if len(step.floors):
             with self.grid_lock:
-                self.grid.add_evidence(TerrainPoints.empty(step.floors.t_s), None, step.floors)
+                self.grid.raise_floors(step.floors)
             self.flow_to_map_ms.add(max(0.0, self.clock.wall_seconds(self.clock.now() - frame.t_s)) * 1e3)
             if self._loop is not None:
                 self._loop.call_soon_threadsafe(self._map_updated.set)  # the law reads the floors at once

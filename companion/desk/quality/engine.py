@@ -41,7 +41,7 @@ from companion.method.geometry import camera_from_config
 from companion.method.mapper import Mapper, mean_innovation_squared
 from companion.method.mapper.features import HarrisDetector
 from companion.method.mapper.flow_depth import FlowRanger
-from companion.method.messages import NavState, TerrainPoints
+from companion.method.messages import NavState
 from companion.method.navigation.assembler import NavAssembler
 from companion.method.terrain.grid import TerrainGrid
 
@@ -329,7 +329,7 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
                 if flow is not None:
                     rises = flow.step(nav_f, image)
                     if len(rises.floors):
-                        grid.add_evidence(TerrainPoints.empty(rises.floors.t_s), None, rises.floors)
+                        grid.raise_floors(rises.floors)
                 rec.points_converged += len(step.points)
                 rec.innovation_nis_sum += step.innovation_nis_sum
                 rec.corner_updates += step.n_corner_updates

@@ -214,8 +214,9 @@ class FlowDepth:
         measured. Only every ``flow_every_frames``-th frame is measured; the others are stored for
         later pairs and give nothing."""
         cfg = self.cfg
+        measured = self.will_measure()
         self._frame += 1
-        if (self._frame - 1) % cfg.flow_every_frames:
+        if not measured:
             self._remember(gray, p_c, R_nc)
             return FlowRises.empty()
         pts, sig, rays = self.ranged(gray, p_c, R_nc)
@@ -272,15 +273,13 @@ class FlowRanger:
         """Range ``image`` ((H, W) grey or (H, W, 3) BGR uint8) taken at ``nav`` against the stored
         frames and return the floors of the cells that rose (:meth:`FlowDepth.step`)."""
         t_s = float(nav.t_s) if math.isfinite(nav.t_s) else 0.0
-        image = np.asarray(image)
-        if image.ndim not in (2, 3):
-            raise ValueError(f"flow image must be (H, W) or (H, W, 3), got shape {image.shape}")
         reason = check_nav(nav)
         if reason:
             self.depth.reset()
             return FlowStep(TerrainFloors.empty(t_s), refused=reason)
         pose = CameraPose.from_nav(nav.position_ned_m, nav.quaternion_wxyz, self.mount)
+        gray = as_gray(np.asarray(image))  # a malformed image raises before any state changes
         measured = self.will_measure()
-        rises = self.depth.step(as_gray(image), pose.p_c, pose.R_nc)
+        rises = self.depth.step(gray, pose.p_c, pose.R_nc)
         floors = TerrainFloors(t_s, rises.floors_ned_m, feature_ids=np.full(len(rises.floors_ned_m), -1, dtype=np.int64))
         return FlowStep(floors, n_ranged=rises.n_ranged, n_rising=rises.n_rising, measured=measured)
