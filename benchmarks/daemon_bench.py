@@ -234,7 +234,7 @@ def run_daemon_benchmark(duration_s: float = 40.0, rate_hz: float = 30.0, log=pr
         cfg = daemon_config(sim.endpoints["tcp"], zenoh_port, os.path.join(tmp.name, "map"), rate_hz)
         cfg.setdefault("control", {})["realtime_priority"] = int(realtime_priority)
         if flow is not None:
-            cfg.setdefault("mapper", {})["flow_rises"] = bool(flow)
+            cfg.setdefault("mapper", {}).update(flow_rises=bool(flow), flow_surface=bool(flow))
         if switch_interval_s is not None:  # 0: Python's default (5 ms)
             cfg.setdefault("control", {})["gil_switch_interval_ms"] = 1e3 * switch_interval_s
         if camera == "stream":

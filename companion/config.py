@@ -180,7 +180,18 @@ class MapperConfig:
     flow_min_rise_m: float = _f(2.0, "m", 0.0, 1e4, "a cell rises when its top (second highest point) stands more than this above its ground")
     flow_persist_frames: int = _f(3, "frames", 1, 1000, "a rising cell gets a floor once it rose in this many of the last flow_persist_window frames (one pair's wrong flow or pose does not)")
     flow_persist_window: int = _f(5, "frames", 1, 1000, "the frames that vote on a rise")
+    flow_surface: bool = _f(True, doc="the flat surfaces the flow's nearest pair ranges go to the map as evidence: per frame, each cell whose points lie on one flat surface with its neighbours gives the median of its points' heights, with the variance of the median and of the pair's pose error (docs/mapper.md, \"Surfaces seen by dense flow\"); the ground the corners leave unmapped gets a height, and the law no longer stands in the highest cell near it; false = the flow's rises only")
+    flow_surface_min_points: int = _f(5, "points", 3, 10000, "a cell's flat surface needs at least this many of the frame's points in the cell, and in each neighbour it is compared with")
+    flow_surface_flat_m: float = _f(1.0, "m", 0.01, 100.0, "a cell is flat when its points (second highest minus second lowest) and the medians of its neighbours lie within this of each other: a wall's face or the ground beside it is not")
+    flow_surface_looks: int = _f(3, "frames", 1, 100, "a cell's flat surface goes to the map as the mean of this many measured frames' looks at it (one frame's pose error moves all its cells at once; each look is given once)")
+    flow_pair_position_sigma_m: float = _f(0.03, "m", 0.0, 100.0, "the navigation's position error between two frames a flow pair apart (per axis): it scales every range of the pair by its share of the baseline")
+    flow_pair_attitude_sigma_deg: float = _f(0.03, "deg", 0.0, 90.0, "the navigation's attitude error between two frames a flow pair apart: it turns every line of sight of one frame against the other's")
     flow_thread_nice: int = _f(10, "", 0, 19, "the service runs the dense flow in a thread of its own at this nice value (Linux): where it shares a core with the mapper's thread, the mapper's frames go first and the flow takes what is left; 0 = the same priority")
+
+    @property
+    def flow_on(self) -> bool:
+        """Whether the dense-flow stage runs (its rises, its surfaces, or both)."""
+        return self.flow_rises or self.flow_surface
 
 
 @dataclass(frozen=True, slots=True)

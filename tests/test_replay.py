@@ -25,6 +25,7 @@ from companion.desk.recordings.recording import WorldFrame, pose_covariance
 from companion.desk.recordings.tum import export_tum
 from companion.desk.replay import EXIT_NOTHING_MAPPED, build_mapper, load_reference, plausibility, run_replay
 from companion.method.geometry import euler_to_matrix, matrix_to_quat
+from companion.method.mapper.flow_depth import FlowRanger
 from companion.method.messages import NavState
 from companion.method.terrain.grid import TerrainGrid
 
@@ -68,15 +69,21 @@ def data(tmp_path_factory):
 
 
 def direct_map(cfg: CompanionConfig, sigma_m: float, sigma_deg: float) -> TerrainGrid:
-    """The mapper fed directly with the true body poses and the rendered images (no files)."""
+    """The mapper and the dense-flow stage beside it fed directly with the true body poses and the
+    rendered images (no files)."""
     f = rs.flight()
     grid = TerrainGrid.from_config(cfg.terrain)
     rec = type("R", (), {"camera": f.camera, "mount": f.mount, "ground_alt_m": 0.0})()
     mapper = build_mapper(cfg, rec, grid)
+    flow = FlowRanger(cfg.mapper, f.camera, f.mount) if cfg.mapper.flow_on else None
     cov = pose_covariance(np.full(3, sigma_m), np.full(3, math.radians(sigma_deg)))
     for t, p, R, image in zip(f.t, f.p, f.R_nb, f.images):
-        step = mapper.step(NavState(float(t), p, np.zeros(3), matrix_to_quat(R), cov), image)
+        nav = NavState(float(t), p, np.zeros(3), matrix_to_quat(R), cov)
+        step = mapper.step(nav, image)
         grid.add_evidence(step.points, step.free_space, step.floors)
+        if flow is not None:
+            flowed = flow.step(nav, image)
+            grid.add_flow(flowed.surface, flowed.floors)
     return grid
 
 

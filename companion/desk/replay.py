@@ -313,7 +313,7 @@ def run_replay(
     grid = TerrainGrid.from_config(cfg.terrain)
     mapper = build_mapper(cfg, recording, grid, mask)
     # rises seen by dense flow: the stage beside the mapper, as the service runs it
-    flow = FlowRanger(cfg.mapper, recording.camera, recording.mount) if cfg.mapper.flow_rises else None
+    flow = FlowRanger(cfg.mapper, recording.camera, recording.mount) if cfg.mapper.flow_on else None
     total = len(recording) if max_frames is None else min(len(recording), max_frames)
     bar = None
     if progress:
@@ -326,7 +326,7 @@ def run_replay(
     counts = dict(listed=0, processed=0, without_nav=0, unreadable=0, refused=0)
     sums = dict(measurements=0, edgels=0, edge_updates=0, matched=0, initialised=0, removed=0, dropped=0, update_rejected=0, converged_points=0,
                 points_inserted=0, points_rejected_invalid=0, points_rejected_outlier=0, prior_fallback=0,
-                corner_updates=0, flow_ranged=0, flow_floors=0)
+                corner_updates=0, flow_ranged=0, flow_floors=0, flow_surface_inserted=0)
     nis_sum = 0.0
     path_ne: list[np.ndarray] = []
     frame_times: list[float] = []
@@ -356,8 +356,7 @@ def run_replay(
                 rises = flow.step(sample.nav, image)
                 sums["flow_ranged"] += rises.n_ranged
                 sums["flow_floors"] += len(rises.floors)
-                if len(rises.floors):
-                    grid.raise_floors(rises.floors)
+                sums["flow_surface_inserted"] += grid.add_flow(rises.surface, rises.floors).inserted
             mapper_s += time.perf_counter() - a
             if step.rejected_reason:
                 counts["refused"] += 1

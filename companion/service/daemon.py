@@ -202,12 +202,12 @@ class Daemon:
         self.notifier = SystemdNotifier()
         self.record_dir = record_dir
         self.frames = FrameQueue(maxlen=2)
-        # Rises seen by dense flow (mapper.flow_rises; docs/mapper.md): a stage of its own, in a thread of
-        # its own beside the mapper's, so its flows run on the other core and never delay a frame's
-        # corners on their way to the setpoint. It keeps earlier frames itself, so it gets every frame
-        # (a deeper queue: storing a frame it does not measure costs a copy).
+        # Rises and flat surfaces seen by dense flow (mapper.flow_rises, flow_surface; docs/mapper.md): a
+        # stage of its own, in a thread of its own beside the mapper's, so its flows run on the other
+        # core and never delay a frame's corners on their way to the setpoint. It keeps earlier frames
+        # itself, so it gets every frame (a deeper queue: storing a frame it does not measure costs a copy).
         self.flow: FlowRanger | None = None
-        if cfg.mapper.flow_rises:
+        if cfg.mapper.flow_on:
             self.flow = FlowRanger(cfg.mapper, self.camera_model, self.mount)
         self.flow_frames = FrameQueue(maxlen=FLOW_QUEUE_FRAMES)
         self._flow_thread: threading.Thread | None = None
@@ -237,6 +237,7 @@ class Daemon:
         self.flow_measured = 0  # frames the dense flow measured (docs/mapper.md, "Rises seen by dense flow")
         self.flow_ranged = 0  # lattice points it ranged
         self.flow_floors = 0  # floors it gave to rising cells
+        self.flow_surface_inserted = 0  # its flat cells' heights the map took (docs/mapper.md, "Surfaces seen by dense flow")
         self.flow_errors = 0
         self.flow_thread_nice: int | None = None  # the flow thread's nice value (None: not started, or unknown)
         self.flow_no_nav: collections.Counter[str] = collections.Counter()
@@ -439,8 +440,9 @@ class Daemon:
                 self.frames.done()
 
     def _flow_worker(self) -> None:
-        """Worker thread: frames -> dense flow -> floors in the terrain grid (docs/mapper.md, "Rises seen
-        by dense flow"). One bad frame never stops the others."""
+        """Worker thread: frames -> dense flow -> floors and flat surfaces in the terrain grid
+        (docs/mapper.md, "Rises seen by dense flow", "Surfaces seen by dense flow"). One bad frame
+        never stops the others."""
         self.flow_thread_nice, why = realtime.yield_to_others(self.cfg.mapper.flow_thread_nice)
         if why:
             log.warning("flow: thread at the mapper's priority (mapper.flow_thread_nice %d not applied: %s)",
@@ -477,9 +479,9 @@ class Daemon:
         self.flow_ranged += step.n_ranged
         self.flow_floors += len(step.floors)
         self.flow_step_ms.add((time.perf_counter() - t0) * 1e3)
-        if len(step.floors):
+        if len(step.floors) or len(step.surface):
             with self.grid_lock:
-                self.grid.raise_floors(step.floors)
+                self.flow_surface_inserted += self.grid.add_flow(step.surface, step.floors).inserted
             self.flow_to_map_ms.add(max(0.0, self.clock.wall_seconds(self.clock.now() - frame.t_s)) * 1e3)
             if self._loop is not None:
                 self._loop.call_soon_threadsafe(self._map_updated.set)  # the law reads the floors at once
@@ -709,7 +711,8 @@ class Daemon:
                 "errors": self.mapper_errors, "points_converged": self.points_converged,
                 "edgels": self.edgels_in, "edge_updates": self.edge_updates,
                 "flow": {"on": self.flow is not None, "thread_nice": self.flow_thread_nice, "frames_measured": self.flow_measured,
-                         "ranged": self.flow_ranged, "floors": self.flow_floors, "errors": self.flow_errors,
+                         "ranged": self.flow_ranged, "floors": self.flow_floors,
+                         "surface_inserted": self.flow_surface_inserted, "errors": self.flow_errors,
                          "frames_without_nav": dict(self.flow_no_nav), "queue_dropped": self.flow_frames.dropped,
                          "step_ms": self.flow_step_ms.summary(), "frame_to_map_ms": self.flow_to_map_ms.summary()},
                 "innovation_nis_mean": None if nis is None else round(nis, 3),

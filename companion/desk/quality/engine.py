@@ -226,8 +226,8 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
                     depth_prior=lambda origin, rays: grid.ray_range(origin, rays, cfg.mapper.prior_max_range_m),
                     default_ground_alt_m=cfg.terrain.default_ground_alt_m,
                     detector=HarrisDetector(cfg.mapper, camera.width, camera.height, cfg.camera.border_px))
-    # rises seen by dense flow: the stage beside the mapper (the service runs it in its own thread)
-    flow = FlowRanger(cfg.mapper, camera, mount) if cfg.mapper.flow_rises else None
+    # rises and surfaces seen by dense flow: the stage beside the mapper (the service runs it in its own thread)
+    flow = FlowRanger(cfg.mapper, camera, mount) if cfg.mapper.flow_on else None
     controller = Controller(cfg)
     assembler = NavAssembler(cfg.nav)
     obstacles = {o.name: footprint_cell_centres(o.footprint_ne_m, grid.cell_size_m, grid.cell_size_m)
@@ -327,9 +327,8 @@ def fly(scenario: str, cfg: CompanionConfig, laps: int, *, seed: int | None = No
                     out.swath.append(np.floor(pts[:, :2] / grid.cell_size_m).astype(np.int64))
                 grid.add_evidence(step.points, step.free_space, step.floors)
                 if flow is not None:
-                    rises = flow.step(nav_f, image)
-                    if len(rises.floors):
-                        grid.raise_floors(rises.floors)
+                    flowed = flow.step(nav_f, image)
+                    grid.add_flow(flowed.surface, flowed.floors)
                 rec.points_converged += len(step.points)
                 rec.innovation_nis_sum += step.innovation_nis_sum
                 rec.corner_updates += step.n_corner_updates

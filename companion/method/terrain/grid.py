@@ -342,9 +342,24 @@ class TerrainGrid:
             stats = replace(stats, lone_floors=self.withdraw_ended_floors(floors.ended_ids))
         return stats
 
-    def insert(self, points: TerrainPoints) -> InsertStats:
+    def add_flow(self, surface: TerrainPoints, floors: TerrainFloors) -> InsertStats:
+        """One frame of the dense flow's evidence (docs/mapper.md, "Surfaces seen by dense flow"):
+        its flat surfaces' heights (:meth:`insert`, keeping the floors, which no feature's bound
+        foresaw, and raising no cell: a height far above a cell is an outlier), then the floors of
+        the cells that rose (:meth:`raise_floors`)."""
+        stats = self.insert(surface, keep_floors=True, raises=False) if len(surface) else InsertStats()
+        if len(floors):
+            self.raise_floors(floors)
+        return stats
+
+    def insert(self, points: TerrainPoints, keep_floors: bool = False, raises: bool = True) -> InsertStats:
         """Fuse a batch of converged points (docs/terrain.md, "Fusion"): each cell keeps its top
-        surface. Invalid points are counted in ``rejected_invalid``; points whose horizontal sigma
+        surface. A changed cell's floor goes (a feature's bound, now its point), unless
+        ``keep_floors``: evidence no feature's bound foresaw (the flow's surfaces, docs/terrain.md,
+        "Floors") leaves the floors to the features that set them. With ``raises`` False a point
+        far above its cell is an outlier, neither a higher surface nor a pending one: evidence of a
+        flat surface's height (the flow's) is as likely too high as too low, and only a point's
+        own surface may raise a cell. Invalid points are counted in ``rejected_invalid``; points whose horizontal sigma
         exceeds ``max_horizontal_sigma_m`` in ``rejected_imprecise``; points that changed no cell's
         height (below, or above and not yet confirmed) in ``rejected_outlier``. A malformed message
         (wrong shapes) raises ValueError."""
@@ -464,7 +479,7 @@ class TerrainGrid:
 
         # Pairs above: a higher surface, taken once confirmed; else it waits as the pending height.
         raised = np.zeros(k, dtype=bool)
-        if above.any():
+        if above.any() and raises:
             up = np.flatnonzero(above)
             h1, r1, h2, r2 = fusion.highest_two(cell[up], hm[up], r[up], k)
             raised, h_r, v_r, pending = fusion.confirm_raise(h1, r1, h2, r2, pending, self.gate_sigma)
@@ -486,10 +501,11 @@ class TerrainGrid:
         if np.isfinite(now):
             self._u.reshape(-1)[cell_flat[changed]] = now
         if changed.any():
-            # The cell's own evidence replaces the floor (docs/terrain.md, "Floors"): a floor left
-            # by a feature that has since converged elsewhere, or died, goes with it.
-            self._f.reshape(-1)[cell_flat[changed]] = -np.inf
-            self._drop_pending_floors(cell_flat[changed])
+            if not keep_floors:
+                # The cell's own evidence replaces the floor (docs/terrain.md, "Floors"): a floor
+                # left by a feature that has since converged elsewhere, or died, goes with it.
+                self._f.reshape(-1)[cell_flat[changed]] = -np.inf
+                self._drop_pending_floors(cell_flat[changed])
             hc = h_new[changed]
             self._h_lo = min(self._h_lo, float(hc.min()))
             self._h_hi = max(self._h_hi, float(hc.max()))
