@@ -210,7 +210,7 @@ def _cell_medians(member: np.ndarray, values: np.ndarray, count: np.ndarray) -> 
     return values[order][starts + (count.astype(np.int64) - 1) // 2]
 
 
-def surface_heights(ranged: "RangedPoints", camera_alt_m: float, cfg: MapperConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def surface_heights(ranged: RangedPoints, camera_alt_m: float, cfg: MapperConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One frame's evidence of the flat surfaces its nearest pair ranged (docs/mapper.md, "Surfaces
     seen by dense flow"): per flat cell (:func:`flat_cells`) the median height of its points and
     that median's variance::
@@ -259,8 +259,8 @@ class SurfaceLooks:
     sigmas), and a cell whose only evidence that is would hold the law a metre up until the next
     look. Averaged, ``k`` independent looks (the frames' errors are white from one measured frame
     to the next) give the information-weighted mean ``h = sum(h_i / v_i) / sum(1 / v_i)`` with the
-    variance ``1 / sum(1 / v_i)``, and the mean of three is wrong by two of its sigmas as rarely as
-    one look. Each look goes to the map once: a cell's sums start again after it is given. A cell
+    variance ``1 / sum(1 / v_i)``: the mean of three equal looks is off by a metre as rarely as one
+    look is off by 1.7 m. Each look goes to the map once: a cell's sums start again after it is given. A cell
     not seen for ``2 looks`` measured frames is forgotten with what it held (it left the view)."""
 
     def __init__(self, looks: int):
@@ -417,9 +417,8 @@ class FlowDepth:
         ``flow_min_rise_m`` above the ground around them (:func:`cell_rises`), and a floor for each
         that rose in at least ``flow_persist_frames`` of the last ``flow_persist_window`` frames
         measured; with ``flow_surface``, the flat cells that now hold ``flow_surface_looks`` looks
-        (:class:`SurfaceLooks`). Only every
-        ``flow_every_frames``-th frame is measured; the others are stored for later pairs and give
-        nothing."""
+        (:class:`SurfaceLooks`). Only every ``flow_every_frames``-th frame is measured; the others
+        are stored for later pairs and give nothing."""
         cfg = self.cfg
         measured = self.will_measure()
         self._frame += 1

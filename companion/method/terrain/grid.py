@@ -358,8 +358,10 @@ class TerrainGrid:
         ``keep_floors``: evidence no feature's bound foresaw (the flow's surfaces, docs/terrain.md,
         "Floors") leaves the floors to the features that set them. With ``raises`` False a point
         far above its cell is an outlier, neither a higher surface nor a pending one: evidence of a
-        flat surface's height (the flow's) is as likely too high as too low, and only a point's
-        own surface may raise a cell. Invalid points are counted in ``rejected_invalid``; points whose horizontal sigma
+        flat surface's height (the flow's) is as likely too high as too low, so only the features'
+        points raise a cell to a higher surface.
+
+        Invalid points are counted in ``rejected_invalid``; points whose horizontal sigma
         exceeds ``max_horizontal_sigma_m`` in ``rejected_imprecise``; points that changed no cell's
         height (below, or above and not yet confirmed) in ``rejected_outlier``. A malformed message
         (wrong shapes) raises ValueError."""
