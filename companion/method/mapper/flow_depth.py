@@ -41,6 +41,7 @@ from companion.method.mapper.features import as_gray
 from companion.method.mapper.mapper import check_nav
 from companion.method.mapper.projection import CameraPose
 from companion.method.messages import NavState, TerrainFloors, TerrainPoints
+from companion.method.terrain.grid import pack_key, unpack_key
 
 # OpenCV's DIS optical flow, its fastest preset: 3.2-3.5 ms a 640 x 480 flow on one core of the
 # development machine; the medium preset takes ten times as long, for ranges of the same order
@@ -279,7 +280,8 @@ class SurfaceLooks:
         looks out, as (cell_ij (C, 2), mean height (C,), its variance (C,))."""
         self._frame += 1
         keep = self._seen >= self._frame - 2 * self.looks
-        keys = np.concatenate([self._keys[keep], _pack(cell_ij)])
+        ij = np.asarray(cell_ij, dtype=np.int64).reshape(-1, 2)
+        keys = np.concatenate([self._keys[keep], pack_key(ij[:, 0], ij[:, 1])])
         sums = np.concatenate([self._sums[keep], np.column_stack([1.0 / variance_m2, height_m / variance_m2])])
         count = np.concatenate([self._count[keep], np.ones(len(height_m), np.int64)])
         seen = np.concatenate([self._seen[keep], np.full(len(height_m), self._frame)])
@@ -290,25 +292,11 @@ class SurfaceLooks:
         self._seen = np.zeros(len(self._keys), np.int64)
         np.maximum.at(self._seen, where, seen)
         ready = self._count >= self.looks
-        out_ij = _unpack(self._keys[ready])
+        out_ij = np.column_stack(unpack_key(self._keys[ready]))
         info, info_h = self._sums[ready, 0], self._sums[ready, 1]
         self._sums[ready] = 0.0
         self._count[ready] = 0
         return out_ij, info_h / info, 1.0 / info
-
-
-def _pack(ij: np.ndarray) -> np.ndarray:
-    """Cell indices (C, 2) as one int64 key each (32 bits a coordinate)."""
-    ij = np.asarray(ij, dtype=np.int64).reshape(-1, 2)
-    return (ij[:, 0] << 32) + (ij[:, 1] & 0xFFFFFFFF)
-
-
-def _unpack(keys: np.ndarray) -> np.ndarray:
-    """The inverse of :func:`_pack`."""
-    i = keys >> 32
-    j = keys & 0xFFFFFFFF
-    j = np.where(j >= 1 << 31, j - (1 << 32), j)
-    return np.column_stack([i, j]).astype(np.int64)
 
 
 @dataclass(frozen=True, slots=True)
