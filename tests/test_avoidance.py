@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -12,11 +13,16 @@ from hypothesis import strategies as st
 
 from companion.method.avoidance import (
     PullUpLaw,
+    ground_band,
+    ground_below,
+    ground_flown_over,
+    ground_reference,
     height_restriction,
     law_heights,
     local_surface,
     minimum_climb_rate,
     nominal_climb_rate,
+    soften_near_ground,
     stopping_time,
     time_to_go,
 )
@@ -251,19 +257,28 @@ def test_unmapped_cells_are_not_ground_at_zero():
             t.height[:8, :], t.variance[:8, :], t.count[:8, :] = 0.0, 1e-4, 1
         zero.put_tile(t)
     assert np.isnan(holed.height_at(4.5, 0.5)[0])
+    below_only = PullUpLaw(dataclasses.replace(CFG, descend_ground_radius_m=0.0))
     for alt in (34.0, 35.0, 36.0, 38.0):
         a = law.command([4, 0.5, -alt], [5, 0, 0], holed)
         b = law.command([4, 0.5, -alt], [5, 0, 0], full)
         assert a.unknown_cells_ahead == 0
         if b.climb_rate_mps >= 0:
             assert a.climb_rate_mps == pytest.approx(b.climb_rate_mps)
-        else:  # no push-over while the terrain below is unseen (test_no_push_over_into_an_unseen_roof)
-            assert a.holding_over_unknown and a.climb_rate_mps == 0.0
+        else:
+            # No push-over while the terrain below is unseen (test_no_push_over_into_an_unseen_roof)...
+            held = below_only.command([4, 0.5, -alt], [5, 0, 0], holed)
+            assert held.holding_over_unknown and held.climb_rate_mps == 0.0
+            # ...except down to the clearance above the plateau flown over, which stands in for it.
+            assert not a.holding_over_unknown and b.climb_rate_mps <= a.climb_rate_mps < 0.0
+            assert a.climb_rate_mps == pytest.approx(nominal_climb_rate(25.0 + CFG.clearance_m - alt, 1.0, CFG.nominal_time_constant_s))
     # Hovering over the hole: ground at zero there would let the vehicle sink into the plateau's
     # clearance; the law takes the highest mapped height around instead.
     assert law.command([4, 0.5, -36.0], [0, 0, 0], zero).climb_rate_mps == -CFG.max_descent_mps
-    # Over the hole itself it does not sink at all: the terrain right below has not been seen.
-    assert law.command([4, 0.5, -36.0], [0, 0, 0], holed).climb_rate_mps == 0.0
+    # Over the hole itself it sinks no lower than the clearance above the plateau around it; with
+    # only the cells right below to go by, not at all: the terrain there has not been seen.
+    assert law.command([4, 0.5, -36.0], [0, 0, 0], holed).climb_rate_mps == pytest.approx(
+        nominal_climb_rate(25.0 + CFG.clearance_m - 36.0, 1.0, CFG.nominal_time_constant_s))
+    assert below_only.command([4, 0.5, -36.0], [0, 0, 0], holed).climb_rate_mps == 0.0
     assert law.command([4, 0.5, -34.0], [0, 0, 0], holed).climb_rate_mps == pytest.approx(math.sqrt(2.0))
     # Beyond the fill distance from anything mapped, a cell is reported, not guessed.
     far = mapped([], ground=25.0, extent=((-30, 20), (-20, 20)))
@@ -340,6 +355,96 @@ def test_no_push_over_into_an_unseen_roof():
     assert not past.holding_over_unknown and past.climb_rate_mps < 0.0
 
 
+def test_sparse_ground_flown_over_lets_the_vehicle_down_and_an_obstacle_flown_over_holds_it():
+    """After a block the ground is mapped one cell in 25, and not at all within 6 m of the vehicle:
+    nothing below to descend on. The ground flown over (10+ mapped cells within 20 m behind) stands
+    in: with only ground there the vehicle descends at the nominal rate; with the block's 12 m top
+    there it descends to 12 m + the clearance and holds."""
+    law = PullUpLaw(CFG)
+    grid = TerrainGrid(gate_min_count=10**6)
+    n, e = np.meshgrid(np.arange(0.0, 100.0) + 0.5, np.arange(-20.0, 20.0) + 0.5, indexing="ij")
+    n, e = n.ravel(), e.ravel()
+    gaps = ((n >= 34) & (n < 46)) | ((n >= 54) & (n < 66))  # around the two positions tried
+    sparse = (np.arange(n.size) % 25 == 0) & ~gaps
+    block = (n >= 20) & (n < 30) & (np.abs(e) < 5)
+    keep = sparse | block
+    pts = np.column_stack([n[keep], e[keep], -np.where(block[keep], 12.0, 0.3)])
+    grid.insert(TerrainPoints(0.0, pts, np.tile(np.eye(3) * 1e-4, (len(pts), 1, 1))))
+    # 60 m north: sparse ground 40-54 m behind; nothing within 6 m.
+    assert ground_below(grid, np.array([60.0, 0.5]), CFG.miss_distance_m + math.sqrt(0.5), np.array([1.0, 0.0]))[0] == 0.0
+    assert ground_flown_over(grid, np.array([60.0, 0.5]), np.array([1.0, 0.0]), 20.0) == pytest.approx(0.3, abs=1e-5)
+    down = law.command([60.0, 0.5, -25.0], [5, 0, 0], grid)
+    assert not down.holding_over_unknown and down.climb_rate_mps == -CFG.max_descent_mps
+    assert PullUpLaw(dataclasses.replace(CFG, descend_ground_radius_m=0.0)).command(
+        [60.0, 0.5, -25.0], [5, 0, 0], grid).holding_over_unknown
+    # 40 m north: the block's top lies within 20 m behind.
+    assert ground_below(grid, np.array([40.0, 0.5]), CFG.miss_distance_m + math.sqrt(0.5), np.array([1.0, 0.0]))[0] == 0.0
+    assert ground_flown_over(grid, np.array([40.0, 0.5]), np.array([1.0, 0.0]), 20.0) == pytest.approx(12.0, abs=1e-5)
+    slow = law.command([40.0, 0.5, -25.0], [5, 0, 0], grid)
+    assert slow.climb_rate_mps == pytest.approx(nominal_climb_rate(12.0 + CFG.clearance_m - 25.0, 1.0, CFG.nominal_time_constant_s))
+    held = law.command([40.0, 0.5, -22.0], [5, 0, 0], grid)
+    assert held.holding_over_unknown and held.climb_rate_mps == pytest.approx(0.0, abs=1e-6)
+
+
+def test_the_ground_reference_is_the_median_of_the_mapped_disc():
+    """The map's ground where the navigation reads 0.8 m high is 0.8 m: the reference; a block
+    covering less than half the disc does not move it; it is clipped; too few cells, or off: 0."""
+    raised = mapped([], ground=0.8)
+    assert ground_reference(raised, np.array([40.0, 0.5]), 10.0, 3.0) == pytest.approx(0.8, abs=1e-5)
+    block = [[n + 0.5, e + 0.5, 12.0] for n in range(40, 48) for e in range(-4, 4)]  # 64 of ~314 cells
+    assert ground_reference(mapped(block, ground=0.8), np.array([40.0, 0.5]), 10.0, 3.0) == pytest.approx(0.8, abs=1e-5)
+    assert ground_reference(mapped([], ground=5.0), np.array([40.0, 0.5]), 10.0, 3.0) == 3.0
+    assert ground_reference(mapped([], ground=-5.0), np.array([40.0, 0.5]), 10.0, 3.0) == -3.0
+    sparse = mapped([], ground=0.8, extent=((0, 3), (0, 3)))  # 9 cells
+    assert ground_reference(sparse, np.array([1.5, 1.5]), 10.0, 3.0) == 0.0
+    assert ground_reference(raised, np.array([40.0, 0.5]), 0.0, 3.0) == 0.0
+    assert ground_reference(raised, np.array([40.0, 0.5]), 10.0, 0.0) == 0.0
+
+
+@settings(max_examples=200, deadline=None)
+@given(h=st.floats(-20.0, 40.0), g=st.floats(-3.0, 3.0), b=st.floats(0.01, 2.0))
+def test_terrain_near_the_ground_is_lowered_by_at_most_one_band(h, g, b):
+    """soften_near_ground against its definition: h - b up to one band above the ground, the ramp
+    g + 2 (h - g - b) to two bands, h above; never more than b lower, never higher than h; and
+    continuous (a step would make the law jump)."""
+    out = float(soften_near_ground(np.array([h]), g, b)[0])
+    x = h - g
+    expected = h - b if x <= b else (g + 2.0 * (x - b) if x < 2.0 * b else h)
+    assert out == pytest.approx(expected, abs=1e-9)
+    assert h - b - 1e-9 <= out <= h + 1e-9
+    if x >= 2.0 * b:
+        assert out == h
+    eps = 1e-7
+    near = soften_near_ground(np.array([h - eps, h + eps]), g, b)
+    assert abs(near[1] - near[0]) <= 2 * 2 * eps + 1e-9
+    assert np.isnan(soften_near_ground(np.array([np.nan]), g, b)[0])
+
+
+def test_the_nominal_altitude_stands_on_the_mapped_ground_and_its_noise_does_not_engage_the_law():
+    """A flat map 0.8 m high (the navigation reads 0.8 m high): the nominal altitude is 0.8 m
+    higher, held without the law; a 0.9 m margin (k sigma) on that ground is within the band; an
+    8 m block ahead still gets the full clearance; a 1.5 m bump gets all but 2 b - 1.5 = 0.5 m."""
+    cfg = dataclasses.replace(CFG, height_margin_sigma=2.0, local_radius_m=0.0)
+    assert ground_band(cfg) == pytest.approx(1.0)  # min(1 m, 0.1 x 10 m)
+    flat = with_variance(mapped([], ground=0.8), 0.2)
+    held = PullUpLaw(cfg).command([0, 0.5, -10.8], [5, 0, 0], flat)
+    assert held.ground_reference_m == pytest.approx(0.8, abs=1e-5)
+    assert held.climb_rate_mps == pytest.approx(0.0, abs=1e-3) and not held.engaged  # the map stores float32
+    low = PullUpLaw(cfg).command([0, 0.5, -10.7], [5, 0, 0], flat)  # 0.1 m under: the nominal's return
+    assert not low.engaged and low.climb_rate_mps == pytest.approx(nominal_climb_rate(0.1, 1.0, CFG.nominal_time_constant_s), abs=1e-4)
+    # 0.8 m under it the ground cells (10 - 1 + 0.89 m) ask for more than the nominal's gentle return.
+    assert PullUpLaw(cfg).command([0, 0.5, -10.0], [5, 0, 0], flat).engaged
+    block = with_variance(mapped([[40.5, 0.5, 8.8]], ground=0.8), 0.2)
+    full = PullUpLaw(cfg).command([13, 0.5, -10.8], [5, 0, 0], block)
+    without = PullUpLaw(dataclasses.replace(cfg, ground_band_m=0.0, ground_reference_radius_m=0.0)).command(
+        [13, 0.5, -10.8], [5, 0, 0], block)
+    assert full.engaged and full.limiting_height_m == pytest.approx(8.8 + 2.0 * math.sqrt(0.2), abs=1e-5)
+    assert full.climb_rate_mps == pytest.approx(without.climb_rate_mps, abs=1e-6)
+    bump = with_variance(mapped([[40.5, 0.5, 2.3 - 2.0 * math.sqrt(0.2)]], ground=0.8), 0.2)  # + 2 sigma: 1.5 m above
+    c = PullUpLaw(cfg).command([33, 0.5, -10.8], [5, 0, 0], bump)
+    assert c.engaged and c.limiting_height_m == pytest.approx(0.8 + 2.0 * (1.5 - 1.0), abs=1e-5)
+
+
 def with_variance(grid, variance):
     """A copy of ``grid`` whose known cells all have ``variance`` (m^2)."""
     out = TerrainGrid(gate_min_count=10**6)
@@ -360,10 +465,14 @@ def test_the_law_keeps_its_clearance_above_the_map_uncertainty():
     c2 = PullUpLaw(cfg2).command([13, 0.5, -10.0], [5, 0, 0], grid)
     assert c0.limiting_height_m == pytest.approx(8.0) and c2.limiting_height_m == pytest.approx(9.0)
     assert c2.climb_rate_mps > c0.climb_rate_mps
-    # Over flat ground mapped to +-0.5 m the vehicle holds nominal + 1 m, not the nominal altitude.
+    # Over flat ground mapped to +-0.5 m, without the ground band, the vehicle holds nominal + 1 m.
     flat = with_variance(mapped([]), 0.25)
-    assert PullUpLaw(cfg2).command([0, 0.5, -11.0], [5, 0, 0], flat).climb_rate_mps == pytest.approx(0.0, abs=1e-9)
-    assert PullUpLaw(cfg2).command([0, 0.5, -10.5], [5, 0, 0], flat).climb_rate_mps > 0.0
+    no_band = dataclasses.replace(cfg2, ground_band_m=0.0)
+    assert PullUpLaw(no_band).command([0, 0.5, -11.0], [5, 0, 0], flat).climb_rate_mps == pytest.approx(0.0, abs=1e-9)
+    assert PullUpLaw(no_band).command([0, 0.5, -10.5], [5, 0, 0], flat).climb_rate_mps > 0.0
+    # With the band (1 m) that margin is the ground's: the nominal altitude holds, the law stays out.
+    level = PullUpLaw(cfg2).command([0, 0.5, -10.0], [5, 0, 0], flat)
+    assert level.climb_rate_mps == pytest.approx(0.0, abs=1e-9) and not level.engaged
 
 
 def _surface_reference(n, e, h, v, i, radius, outlier_sigma, max_step=math.inf):
@@ -487,8 +596,9 @@ def test_flat_ground_known_to_half_a_metre_costs_less_margin_fused_and_a_small_p
     """Over flat ground whose cells each hold +-0.5 m, the law with k = 2 keeps its clearance above
     h + 2 sqrt(V) of the fused cells (V = 0.25 / n for the n cells of a disc of 2 m: 13 inside the
     corridor, fewer at its edges), not h + 1 m; a 2.5 m post in that ground stands out (2.5 m >
-    2 sqrt(0.25 + 0.25 / 12)) and still counts at its own 2.5 + 1 m."""
-    fields = {f: getattr(CFG, f) for f in CFG.__dataclass_fields__}
+    2 sqrt(0.25 + 0.25 / 12)) and still counts at its own 2.5 + 1 m. (Without the ground band,
+    which would take both margins as the ground's.)"""
+    fields = {**{f: getattr(CFG, f) for f in CFG.__dataclass_fields__}, "ground_band_m": 0.0}
     alone = PullUpLaw(AvoidanceConfig(**{**fields, "height_margin_sigma": 2.0, "local_radius_m": 0.0}))
     fused = PullUpLaw(AvoidanceConfig(**{**fields, "height_margin_sigma": 2.0, "local_radius_m": 2.0}))
     flat = with_variance(mapped([]), 0.25)
@@ -511,16 +621,17 @@ def test_flat_ground_known_to_half_a_metre_costs_less_margin_fused_and_a_small_p
 @given(k=st.floats(0.0, 4.0), sigma=st.floats(0.01, 2.0), alt=st.floats(8.0, 30.0), north=st.floats(-5.0, 35.0))
 def test_margin_is_the_same_law_on_a_map_raised_by_k_sigma(k, sigma, alt, north):
     """Property: the law with margin k on a map of variance sigma^2 commands exactly what the law
-    without margin commands on the same map raised by k sigma."""
+    without margin commands on the same map raised by k sigma (the ground reference and its band
+    off: raising the map raises its ground too)."""
     cells = [[40.5, 0.5, 8.0], [41.5, 0.5, 6.0], [60.5, -1.5, 12.0]]
-    fields = {f: getattr(CFG, f) for f in CFG.__dataclass_fields__}
+    fields = {**{f: getattr(CFG, f) for f in CFG.__dataclass_fields__}, "ground_reference_radius_m": 0.0, "ground_band_m": 0.0}
     with_k = PullUpLaw(AvoidanceConfig(**{**fields, "height_margin_sigma": k, "local_radius_m": 0.0}))
     extent = ((-15, 75), (-8, 8))
     grid = with_variance(mapped(cells, extent=extent), sigma * sigma)
     raised = with_variance(mapped([[n, e, h + k * sigma] for n, e, h in cells], ground=k * sigma, extent=extent),
                            sigma * sigma)
     a = with_k.command([north, 0.5, -alt], [5, 0, 0], grid)
-    b = PullUpLaw(CFG).command([north, 0.5, -alt], [5, 0, 0], raised)
+    b = PullUpLaw(AvoidanceConfig(**fields)).command([north, 0.5, -alt], [5, 0, 0], raised)
     assert a.climb_rate_mps == pytest.approx(b.climb_rate_mps, abs=1e-5)  # the map stores float32
     assert a.engaged == b.engaged
 

@@ -273,7 +273,14 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
         # the known horizon (on by default) is published beside it: a distance along track, or null
         assert "known_horizon_m" in a and (a["known_horizon_m"] is None or a["known_horizon_m"] >= 0.0)
     assert any(a["known_horizon_m"] is not None for a in limited)
-    assert set(status["avoidance"]) >= {"speed_limit_mps", "view_distance_m", "view_speed_limit_mps", "known_horizon_m"}
+    # The ground the nominal altitude stands on (docs/avoidance.md): the mapped ground's median
+    # height around the vehicle, within avoidance.ground_reference_max_m (3 m) of the local zero,
+    # and found once the ground below is mapped.
+    grounds = [a["ground_reference_m"] for a in limited if a["ground_reference_m"] is not None]
+    assert grounds and all(abs(g) <= 3.0 + 1e-6 for g in grounds)
+    assert any(g != 0.0 for g in grounds), "the ground reference never found ten mapped cells around the vehicle"
+    assert set(status["avoidance"]) >= {"speed_limit_mps", "view_distance_m", "view_speed_limit_mps", "known_horizon_m",
+                                        "ground_reference_m"}
     if camera == "synthetic":
         # Frames rendered at SIM_STATE's truth are timed by the attitude it followed in the same
         # simulator step, not by its arrival (docs/mavlink.md, "Simulator truth").

@@ -123,7 +123,8 @@ class AvoidanceCommand:
     required_alt_m: eq. 18, h_min of that cell (NaN if none).
     engaged: an obstacle demands more than the nominal command.
     unknown_cells_ahead: corridor cells with no evidence and no mapped cell near enough to stand in.
-    holding_over_unknown: a descent held because the ground below is unseen.
+    holding_over_unknown: a descent held because the ground below is unseen, or seen (lines of
+        sight, the ground flown over) no lower than the clearance below the vehicle.
     speed_limit_mps: the horizontal speed the vehicle must not exceed: the least of
         :func:`climb_speed_limit` (mapped terrain ahead) and :func:`view_speed_limit` (inf: none,
         both off, or hovering).
@@ -139,6 +140,8 @@ class AvoidanceCommand:
         distance of terrain beyond the view that no line of sight has proven low
         (:func:`known_horizon`); the view speed limit stops before the farther of it and the view
         distance. NaN: not computed (the option or the view limit off, hovering, no view).
+    ground_reference_m: the ground the nominal altitude stood on (:func:`ground_reference`; 0: the
+        local frame's zero); the nominal command aimed at it + the nominal altitude.
     """
 
     climb_rate_mps: float
@@ -155,6 +158,7 @@ class AvoidanceCommand:
     view_speed_limit_mps: float = math.inf
     limiting_source_ne: tuple[float, float] | None = None
     known_horizon_m: float = math.nan
+    ground_reference_m: float = 0.0
 
 
 def stand_in_source(along_m: np.ndarray, height_m: np.ndarray, mapped: np.ndarray, i: int, fill_m: float,
@@ -465,6 +469,81 @@ def view_speed_limit(view_distance_m: float, cfg: AvoidanceConfig) -> float:
                              cfg.reaction_time_s + cfg.map_latency_s)[0])
 
 
+GROUND_MIN_CELLS = 10
+"""The fewest mapped cells :func:`ground_reference` takes a median of."""
+
+
+def ground_reference(grid: TerrainGrid, position_ne: np.ndarray, radius_m: float, limit_m: float,
+                     min_cells: int = GROUND_MIN_CELLS) -> float:
+    """The height of the ground around the vehicle, local frame (docs/avoidance.md, "The ground the
+    nominal altitude stands on"): the median of the heights of the mapped cells whose centres lie
+    within ``radius_m`` of ``position_ne`` (2,), clipped to ``[-limit_m, limit_m]``. 0 (the local
+    frame's zero, the ground the nominal altitude is given above) when ``radius_m`` or ``limit_m``
+    is 0 or fewer than ``min_cells`` cells there are mapped.
+
+    The map is built from the navigation's poses, so its ground carries the navigation's vertical
+    error: where the altitude reads 1 m high, the ground is mapped 1 m high too, and the nominal
+    altitude above the map's ground is the commanded height above the true ground. The median of a
+    disc is the ground's, not an obstacle's, while obstacles cover less than half of it."""
+    if radius_m <= 0.0 or limit_m <= 0.0:
+        return 0.0
+    p = np.asarray(position_ne, dtype=np.float64).reshape(2)
+    disc = grid.corridor(p, np.array([1.0, 0.0]), 0.0, radius_m)
+    inside = ((np.hypot(disc.north_m - p[0], disc.east_m - p[1]) <= radius_m)
+              & (disc.count > 0) & np.isfinite(disc.height_m))
+    if np.count_nonzero(inside) < min_cells:
+        return 0.0
+    return float(np.clip(np.median(disc.height_m[inside]), -limit_m, limit_m))
+
+
+def ground_flown_over(grid: TerrainGrid, position_ne: np.ndarray, direction_ne: np.ndarray | None, radius_m: float,
+                      min_cells: int = GROUND_MIN_CELLS) -> float | None:
+    """The highest mapped cell of the ground just flown over (docs/avoidance.md, "Unmapped cells"):
+    among the cells within ``radius_m`` behind the vehicle moving along the unit ``direction_ne``
+    (a half disc; at hover, None, the disc around it), the largest height of those mapped; None when
+    fewer than ``min_cells`` are, or ``radius_m`` is 0. Where the cells right below are too sparsely
+    mapped to descend on, the ground flown over stands in for them, as the highest mapped cell
+    within ``unknown_fill_m`` along track stands in for an unmapped cell of the corridor."""
+    if radius_m <= 0.0:
+        return None
+    p = np.asarray(position_ne, dtype=np.float64).reshape(2)
+    if direction_ne is None:
+        disc = grid.corridor(p, np.array([1.0, 0.0]), 0.0, radius_m)
+        inside = np.hypot(disc.north_m - p[0], disc.east_m - p[1]) <= radius_m
+    else:
+        disc = grid.corridor(p, -np.asarray(direction_ne, dtype=np.float64), radius_m, radius_m)
+        inside = (disc.along_m >= -0.5 * grid.cell_size_m) & (np.hypot(disc.along_m, disc.cross_m) <= radius_m)
+    mapped = inside & (disc.count > 0) & np.isfinite(disc.height_m)
+    if np.count_nonzero(mapped) < min_cells:
+        return None
+    return float(disc.height_m[mapped].max())
+
+
+def ground_band(cfg: AvoidanceConfig) -> float:
+    """The band ``b`` (m) of :func:`soften_near_ground`: ``ground_band_m``, at most
+    ``speed_limit_shortfall`` of the clearance (the shortfall the law already leaves to itself)."""
+    return max(min(cfg.ground_band_m, cfg.speed_limit_shortfall * cfg.clearance_m), 0.0)
+
+
+def soften_near_ground(height_m: np.ndarray, ground_m: float, band_m: float) -> np.ndarray:
+    """The height the law keeps its clearance above, for terrain near the ground reference ``g``
+    (docs/avoidance.md, "The ground the nominal altitude stands on"), with ``x = h - g``:
+
+        h - b              x <= b        (the ground and its noise: one band lower)
+        g + 2 (x - b)      b < x < 2 b   (a ramp: continuous at both ends)
+        h                  x >= 2 b      (an obstacle: in full)
+
+    The law's clearance over a cell falls short by ``b`` up to one band above the ground, by
+    ``2 b - x`` on the ramp and by nothing from two bands up: at most ``b`` anywhere. NaN stays NaN;
+    (K,) -> (K,)."""
+    h = np.asarray(height_m, dtype=np.float64)
+    if band_m <= 0.0:
+        return h
+    x = h - ground_m
+    with np.errstate(invalid="ignore"):
+        return np.where(x <= band_m, h - band_m, np.where(x < 2.0 * band_m, ground_m + 2.0 * (x - band_m), h))
+
+
 def known_horizon(along_m: np.ndarray, cross_m: np.ndarray, ceiling_m: np.ndarray, radius_m: float, cell_m: float,
                   view_distance_m: float, danger_m: float, lookahead_m: float) -> float:
     """How far (m, along track) the vehicle can fly before it comes within ``radius_m`` of terrain
@@ -508,7 +587,8 @@ class PullUpLaw:
         v = np.asarray(velocity_ned, dtype=np.float64).reshape(3)
         if not (np.isfinite(p).all() and np.isfinite(v).all()):
             raise ValueError("PullUpLaw.command: position and velocity must be finite")
-        nominal = cfg.nominal_alt_m if nominal_alt_m is None else float(nominal_alt_m)
+        ground = ground_reference(grid, p[:2], cfg.ground_reference_radius_m, cfg.ground_reference_max_m)
+        nominal = (cfg.nominal_alt_m if nominal_alt_m is None else float(nominal_alt_m)) + ground
         alt = -p[2]
         a = cfg.accel_mps2
         w_nom = nominal_climb_rate(nominal - alt, a, cfg.nominal_time_constant_s)
@@ -538,6 +618,7 @@ class PullUpLaw:
             zone = (corridor_along >= 0.0) | (corridor_along * corridor_along + corr.cross_m * corr.cross_m <= radius * radius)
         corridor_heights = law_heights(corridor_along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover,
                                        cfg.local_radius_m, cfg.local_outlier_sigma, cfg.speed_limit_shortfall * cfg.clearance_m)
+        corridor_heights = soften_near_ground(corridor_heights, ground, ground_band(cfg))
         heights = corridor_heights[zone]
         along, cross = corridor_along[zone], corr.cross_m[zone]
         north, east = corr.north_m[zone], corr.east_m[zone]
@@ -561,10 +642,18 @@ class PullUpLaw:
         if cmd < 0.0:
             mapped, seen, top = ground_below(grid, p[:2], radius, None if hover else direction)
             if mapped < cfg.descend_known_fraction:
-                if seen < cfg.descend_known_fraction:
+                # What may stand below, by the evidence there is: the highest ceiling of the cells
+                # below (lines of sight crossed them lower), or the highest cell of the ground flown
+                # over; the vehicle descends to the clearance above the lower of the two.
+                bounds = [top] if seen >= cfg.descend_known_fraction else []
+                flown = ground_flown_over(grid, p[:2], None if hover else direction, cfg.descend_ground_radius_m)
+                if flown is not None:
+                    bounds.append(float(soften_near_ground(np.array([flown]), ground, ground_band(cfg))[0]))
+                if not bounds:
                     holding, cmd = True, 0.0
-                elif math.isfinite(top):  # no lower than the clearance above the highest ceiling
-                    cmd = max(cmd, min(nominal_climb_rate(top + cfg.clearance_m - alt, a, cfg.nominal_time_constant_s), 0.0))
+                elif math.isfinite(min(bounds)):
+                    cmd = max(cmd, min(nominal_climb_rate(min(bounds) + cfg.clearance_m - alt, a, cfg.nominal_time_constant_s), 0.0))
+                    holding = cmd >= 0.0
         limit = math.inf
         if cfg.speed_limit and not hover:
             ahead = considered & (along > 0.0)
@@ -586,7 +675,7 @@ class PullUpLaw:
             limit = min(limit, view_limit)
         if idx is None or not engaged:
             return AvoidanceCommand(cmd, w_nom, None, math.nan, math.nan, math.nan, False, unknown_left, holding, limit,
-                                    view_m, view_limit, known_horizon_m=horizon)
+                                    view_m, view_limit, known_horizon_m=horizon, ground_reference_m=ground)
         h_i = float(heights[idx])
         source = None
         j = int(np.flatnonzero(zone)[idx])  # the limiting cell in the corridor
@@ -611,6 +700,7 @@ class PullUpLaw:
             view_speed_limit_mps=view_limit,
             limiting_source_ne=source,
             known_horizon_m=horizon,
+            ground_reference_m=ground,
         )
 
 

@@ -633,6 +633,7 @@ class Daemon:
             "time_to_cell_s": num(cmd.time_to_go_s),
             "limiting_height_m": num(cmd.limiting_height_m),
             "nominal_alt_m": self.cfg.avoidance.nominal_alt_m,
+            "ground_reference_m": num(cmd.ground_reference_m),
             "nominal_climb_mps": num(cmd.nominal_climb_mps),
             "unknown_cells_ahead": int(cmd.unknown_cells_ahead),
             "speed_limit_mps": num(cmd.speed_limit_mps),
@@ -728,6 +729,7 @@ class Daemon:
                 "view_distance_m": _finite_or_none(self.last_command.view_distance_m),
                 "view_speed_limit_mps": _finite_or_none(self.last_command.view_speed_limit_mps),
                 "known_horizon_m": _finite_or_none(self.last_command.known_horizon_m),
+                "ground_reference_m": _finite_or_none(self.last_command.ground_reference_m),
             },
             "control": {
                 "rate_hz": self.cfg.control.rate_hz, "ticks": self.control_ticks,

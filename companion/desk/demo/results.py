@@ -190,7 +190,7 @@ def build_metrics(records: dict[str, RunRecord], world, obstacle, opts, wall_s: 
         "paper": {"mapped_fraction_of_height": report.PAPER_MAPPED_FRACTION,
                   "note": "Magree, Mooney, Johnson, section IV: the 40 ft structure (texture to ~30 ft) was mapped at about 30 ft"},
         "definitions": {
-            "cruise_height_over_flat_m": "median (altitude - true terrain) over the lap where the terrain is flat within 15 m (nominal altitude + the 2-sigma map margin)",
+            "cruise_height_over_flat_m": "median (altitude - true terrain) over the lap where the terrain is flat within 15 m (the nominal altitude above the mapped ground: docs/avoidance.md, \"The ground the nominal altitude stands on\")",
             "min_clearance_m": "least (altitude - true terrain) while the true position is over the obstacle's footprint, per lap",
             "mapped_obstacle_height_m": "95th percentile of the mapped heights of the footprint cells (grown by one cell) "
                                         "holding >= 2 points, in the ground station's map at the lap's end",
