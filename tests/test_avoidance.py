@@ -386,19 +386,26 @@ def test_sparse_ground_flown_over_lets_the_vehicle_down_and_an_obstacle_flown_ov
     assert held.holding_over_unknown and held.climb_rate_mps == pytest.approx(0.0, abs=1e-6)
 
 
-def test_the_ground_reference_is_the_median_of_the_mapped_disc():
+def test_the_ground_reference_is_the_median_of_the_mapped_cells_near_the_vehicle():
     """The map's ground where the navigation reads 0.8 m high is 0.8 m: the reference; a block
-    covering less than half the disc does not move it; it is clipped; too few cells, or off: 0."""
-    raised = mapped([], ground=0.8)
-    assert ground_reference(raised, np.array([40.0, 0.5]), 10.0, 3.0) == pytest.approx(0.8, abs=1e-5)
-    block = [[n + 0.5, e + 0.5, 12.0] for n in range(40, 48) for e in range(-4, 4)]  # 64 of ~314 cells
-    assert ground_reference(mapped(block, ground=0.8), np.array([40.0, 0.5]), 10.0, 3.0) == pytest.approx(0.8, abs=1e-5)
-    assert ground_reference(mapped([], ground=5.0), np.array([40.0, 0.5]), 10.0, 3.0) == 3.0
-    assert ground_reference(mapped([], ground=-5.0), np.array([40.0, 0.5]), 10.0, 3.0) == -3.0
-    sparse = mapped([], ground=0.8, extent=((0, 3), (0, 3)))  # 9 cells
-    assert ground_reference(sparse, np.array([1.5, 1.5]), 10.0, 3.0) == 0.0
-    assert ground_reference(raised, np.array([40.0, 0.5]), 0.0, 3.0) == 0.0
-    assert ground_reference(raised, np.array([40.0, 0.5]), 10.0, 0.0) == 0.0
+    covering less than half the cells does not move it; it is clipped; too few cells, or off: 0. The
+    law takes the cells of its corridor within 10 m of the vehicle."""
+    h = np.full(40, 0.8)
+    known = np.ones(40, bool)
+    d = np.linspace(0.0, 20.0, 40)  # 20 cells within 10 m
+    assert ground_reference(h, known, d, 10.0, 3.0) == pytest.approx(0.8)
+    block = np.where(np.arange(40) % 3 == 0, 12.0, 0.8)  # a third of them
+    assert ground_reference(block, known, d, 10.0, 3.0) == pytest.approx(0.8)
+    assert ground_reference(h + 4.2, known, d, 10.0, 3.0) == 3.0
+    assert ground_reference(h - 5.8, known, d, 10.0, 3.0) == -3.0
+    assert ground_reference(np.where(d > 10.0, 5.0, 0.8), known, d, 10.0, 3.0) == pytest.approx(0.8)  # farther: not counted
+    assert ground_reference(h, known & (np.arange(40) < 9), d, 10.0, 3.0) == 0.0  # nine mapped
+    assert ground_reference(h, known, d, 0.0, 3.0) == 0.0 and ground_reference(h, known, d, 10.0, 0.0) == 0.0
+    law = PullUpLaw(CFG)
+    assert law.command([40.0, 0.5, -10.8], [5, 0, 0], mapped([], ground=0.8)).ground_reference_m == pytest.approx(0.8, abs=1e-5)
+    cells = [[n + 0.5, e + 0.5, 12.0] for n in range(40, 44) for e in range(-4, 4)]  # 32 cells ahead, in the corridor
+    assert law.command([40.0, 0.5, -10.8], [5, 0, 0], mapped(cells, ground=0.8)).ground_reference_m == pytest.approx(0.8, abs=1e-5)
+    assert law.command([40.0, 0.5, -10.8], [5, 0, 0], TerrainGrid()).ground_reference_m == 0.0
 
 
 @settings(max_examples=200, deadline=None)

@@ -473,27 +473,26 @@ GROUND_MIN_CELLS = 10
 """The fewest mapped cells :func:`ground_reference` takes a median of."""
 
 
-def ground_reference(grid: TerrainGrid, position_ne: np.ndarray, radius_m: float, limit_m: float,
-                     min_cells: int = GROUND_MIN_CELLS) -> float:
+def ground_reference(height_m: np.ndarray, mapped: np.ndarray, distance_m: np.ndarray, radius_m: float,
+                     limit_m: float, min_cells: int = GROUND_MIN_CELLS) -> float:
     """The height of the ground around the vehicle, local frame (docs/avoidance.md, "The ground the
-    nominal altitude stands on"): the median of the heights of the mapped cells whose centres lie
-    within ``radius_m`` of ``position_ne`` (2,), clipped to ``[-limit_m, limit_m]``. 0 (the local
-    frame's zero, the ground the nominal altitude is given above) when ``radius_m`` or ``limit_m``
-    is 0 or fewer than ``min_cells`` cells there are mapped.
+    nominal altitude stands on"): the median of ``height_m`` (K,) over the ``mapped`` (K,) cells whose
+    centres lie within ``radius_m`` of the vehicle (``distance_m`` (K,)), clipped to
+    ``[-limit_m, limit_m]``. 0 (the local frame's zero, the ground the nominal altitude is given
+    above) when ``radius_m`` or ``limit_m`` is 0 or fewer than ``min_cells`` such cells are mapped.
+    The law takes the cells of its corridor (``unknown_fill_m`` behind the vehicle to ahead, the miss
+    distance either side; the disc around it at hover): no query of its own.
 
     The map is built from the navigation's poses, so its ground carries the navigation's vertical
     error: where the altitude reads 1 m high, the ground is mapped 1 m high too, and the nominal
-    altitude above the map's ground is the commanded height above the true ground. The median of a
-    disc is the ground's, not an obstacle's, while obstacles cover less than half of it."""
+    altitude above the map's ground is the commanded height above the true ground. The median is
+    the ground's, not an obstacle's, while obstacles cover less than half of the cells."""
     if radius_m <= 0.0 or limit_m <= 0.0:
         return 0.0
-    p = np.asarray(position_ne, dtype=np.float64).reshape(2)
-    disc = grid.corridor(p, np.array([1.0, 0.0]), 0.0, radius_m)
-    inside = ((np.hypot(disc.north_m - p[0], disc.east_m - p[1]) <= radius_m)
-              & (disc.count > 0) & np.isfinite(disc.height_m))
-    if np.count_nonzero(inside) < min_cells:
+    near = np.asarray(mapped, dtype=bool) & (np.asarray(distance_m) <= radius_m)
+    if np.count_nonzero(near) < min_cells:
         return 0.0
-    return float(np.clip(np.median(disc.height_m[inside]), -limit_m, limit_m))
+    return float(np.clip(np.median(np.asarray(height_m)[near]), -limit_m, limit_m))
 
 
 def ground_flown_over(grid: TerrainGrid, position_ne: np.ndarray, direction_ne: np.ndarray | None, radius_m: float,
@@ -587,11 +586,8 @@ class PullUpLaw:
         v = np.asarray(velocity_ned, dtype=np.float64).reshape(3)
         if not (np.isfinite(p).all() and np.isfinite(v).all()):
             raise ValueError("PullUpLaw.command: position and velocity must be finite")
-        ground = ground_reference(grid, p[:2], cfg.ground_reference_radius_m, cfg.ground_reference_max_m)
-        nominal = (cfg.nominal_alt_m if nominal_alt_m is None else float(nominal_alt_m)) + ground
         alt = -p[2]
         a = cfg.accel_mps2
-        w_nom = nominal_climb_rate(nominal - alt, a, cfg.nominal_time_constant_s)
 
         # The zone of a cell: within the miss distance of any point of the cell (half diagonal).
         radius = cfg.miss_distance_m + grid.cell_size_m * math.sqrt(0.5)
@@ -616,6 +612,11 @@ class PullUpLaw:
             corr = grid.corridor(p[:2] - fill * direction, direction, cfg.lookahead_m + fill, radius)
             corridor_along = corr.along_m - fill
             zone = (corridor_along >= 0.0) | (corridor_along * corridor_along + corr.cross_m * corr.cross_m <= radius * radius)
+        known = (corr.count > 0) & np.isfinite(corr.height_m)
+        ground = ground_reference(corr.height_m, known, np.hypot(corr.north_m - p[0], corr.east_m - p[1]),
+                                  cfg.ground_reference_radius_m, cfg.ground_reference_max_m)
+        nominal = (cfg.nominal_alt_m if nominal_alt_m is None else float(nominal_alt_m)) + ground
+        w_nom = nominal_climb_rate(nominal - alt, a, cfg.nominal_time_constant_s)
         corridor_heights = law_heights(corridor_along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover,
                                        cfg.local_radius_m, cfg.local_outlier_sigma, cfg.speed_limit_shortfall * cfg.clearance_m)
         corridor_heights = soften_near_ground(corridor_heights, ground, ground_band(cfg))
