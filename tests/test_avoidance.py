@@ -429,7 +429,8 @@ def test_terrain_near_the_ground_is_lowered_by_at_most_one_band(h, g, b):
 
 def test_the_nominal_altitude_stands_on_the_mapped_ground_and_its_noise_does_not_engage_the_law():
     """A flat map 0.8 m high (the navigation reads 0.8 m high): the nominal altitude is 0.8 m
-    higher, held without the law; a 0.9 m margin (k sigma) on that ground is within the band; an
+    higher, held and returned to without the law; a 0.9 m margin (k sigma) on that ground is within
+    the band (with a nominal altitude below the clearance the band still keeps the law over it); an
     8 m block ahead still gets the full clearance; a 1.5 m bump gets all but 2 b - 1.5 = 0.5 m."""
     cfg = dataclasses.replace(CFG, height_margin_sigma=2.0, local_radius_m=0.0)
     assert ground_band(cfg) == pytest.approx(1.0)  # min(1 m, 0.1 x 10 m)
@@ -439,8 +440,12 @@ def test_the_nominal_altitude_stands_on_the_mapped_ground_and_its_noise_does_not
     assert held.climb_rate_mps == pytest.approx(0.0, abs=1e-3) and not held.engaged  # the map stores float32
     low = PullUpLaw(cfg).command([0, 0.5, -10.7], [5, 0, 0], flat)  # 0.1 m under: the nominal's return
     assert not low.engaged and low.climb_rate_mps == pytest.approx(nominal_climb_rate(0.1, 1.0, CFG.nominal_time_constant_s), abs=1e-4)
-    # 0.8 m under it the ground cells (10 - 1 + 0.89 m) ask for more than the nominal's gentle return.
-    assert PullUpLaw(cfg).command([0, 0.5, -10.0], [5, 0, 0], flat).engaged
+    # 0.8 m under it, too: the ground is the nominal's to follow, at its gentle return, not the law's.
+    under = PullUpLaw(cfg).command([0, 0.5, -10.0], [5, 0, 0], flat)
+    assert not under.engaged and under.climb_rate_mps == pytest.approx(nominal_climb_rate(0.8, 1.0, CFG.nominal_time_constant_s), abs=1e-4)
+    # A nominal altitude below the clearance: the ground's cells (one band lower) keep the law above it.
+    low_nominal = PullUpLaw(dataclasses.replace(cfg, nominal_alt_m=8.0)).command([0, 0.5, -9.0], [5, 0, 0], flat)
+    assert low_nominal.engaged and low_nominal.limiting_height_m == pytest.approx(0.8 + 2 * math.sqrt(0.2) - 1.0, abs=1e-5)
     block = with_variance(mapped([[40.5, 0.5, 8.8]], ground=0.8), 0.2)
     full = PullUpLaw(cfg).command([13, 0.5, -10.8], [5, 0, 0], block)
     without = PullUpLaw(dataclasses.replace(cfg, ground_band_m=0.0, ground_reference_radius_m=0.0)).command(

@@ -480,8 +480,8 @@ def ground_reference(height_m: np.ndarray, mapped: np.ndarray, distance_m: np.nd
     centres lie within ``radius_m`` of the vehicle (``distance_m`` (K,)), clipped to
     ``[-limit_m, limit_m]``. 0 (the local frame's zero, the ground the nominal altitude is given
     above) when ``radius_m`` or ``limit_m`` is 0 or fewer than ``min_cells`` such cells are mapped.
-    The law takes the cells of its corridor (``unknown_fill_m`` behind the vehicle to ahead, the miss
-    distance either side; the disc around it at hover): no query of its own.
+    The law takes the cells within ``radius_m`` of the vehicle's cell (:func:`disc_offsets`): ahead,
+    behind and to the sides, one lookup of the grid.
 
     The map is built from the navigation's poses, so its ground carries the navigation's vertical
     error: where the altitude reads 1 m high, the ground is mapped 1 m high too, and the nominal
@@ -490,9 +490,11 @@ def ground_reference(height_m: np.ndarray, mapped: np.ndarray, distance_m: np.nd
     if radius_m <= 0.0 or limit_m <= 0.0:
         return 0.0
     near = np.asarray(mapped, dtype=bool) & (np.asarray(distance_m) <= radius_m)
-    if np.count_nonzero(near) < min_cells:
+    n = int(np.count_nonzero(near))
+    if n < min_cells:
         return 0.0
-    return float(np.clip(np.median(np.asarray(height_m)[near]), -limit_m, limit_m))
+    middle = np.partition(np.asarray(height_m, dtype=np.float64)[near], [(n - 1) // 2, n // 2])  # the median, without np.median's overhead
+    return float(np.clip(0.5 * (middle[(n - 1) // 2] + middle[n // 2]), -limit_m, limit_m))
 
 
 def ground_flown_over(grid: TerrainGrid, position_ne: np.ndarray, direction_ne: np.ndarray | None, radius_m: float,
@@ -612,19 +614,31 @@ class PullUpLaw:
             corr = grid.corridor(p[:2] - fill * direction, direction, cfg.lookahead_m + fill, radius)
             corridor_along = corr.along_m - fill
             zone = (corridor_along >= 0.0) | (corridor_along * corridor_along + corr.cross_m * corr.cross_m <= radius * radius)
-        known = (corr.count > 0) & np.isfinite(corr.height_m)
-        ground = ground_reference(corr.height_m, known, np.hypot(corr.north_m - p[0], corr.east_m - p[1]),
-                                  cfg.ground_reference_radius_m, cfg.ground_reference_max_m)
-        nominal = (cfg.nominal_alt_m if nominal_alt_m is None else float(nominal_alt_m)) + ground
+        ground = 0.0
+        if cfg.ground_reference_radius_m > 0.0 and cfg.ground_reference_max_m > 0.0:
+            c = grid.cell_size_m
+            di, dj = disc_offsets(int(cfg.ground_reference_radius_m // c))
+            centre = (np.floor(p[:2] / c) + 0.5) * c  # the vehicle's cell
+            h_disc, _, count_disc = grid.height_at(centre[0] + di * c, centre[1] + dj * c)
+            ground = ground_reference(h_disc, (count_disc > 0) & np.isfinite(h_disc), np.hypot(di, dj) * c,
+                                      cfg.ground_reference_radius_m, cfg.ground_reference_max_m)
+        nominal_above = cfg.nominal_alt_m if nominal_alt_m is None else float(nominal_alt_m)
+        nominal = nominal_above + ground
         w_nom = nominal_climb_rate(nominal - alt, a, cfg.nominal_time_constant_s)
         corridor_heights = law_heights(corridor_along, corr, cfg.height_margin_sigma, fill, grid.cell_size_m, hover,
                                        cfg.local_radius_m, cfg.local_outlier_sigma, cfg.speed_limit_shortfall * cfg.clearance_m)
-        corridor_heights = soften_near_ground(corridor_heights, ground, ground_band(cfg))
+        band = ground_band(cfg)
+        with np.errstate(invalid="ignore"):
+            # Within a band of the ground and a nominal altitude at least the clearance above it:
+            # the nominal command's to follow, never an obstacle (docs/avoidance.md).
+            nominal_ground = (corridor_heights - ground <= band) if band > 0.0 and nominal_above >= cfg.clearance_m \
+                else np.zeros(len(corridor_heights), bool)
+        corridor_heights = soften_near_ground(corridor_heights, ground, band)
         heights = corridor_heights[zone]
         along, cross = corridor_along[zone], corr.cross_m[zone]
         north, east = corr.north_m[zone], corr.east_m[zone]
-        considered = np.isfinite(heights)
-        unknown_left = int(len(heights) - np.count_nonzero(considered))
+        unknown_left = int(len(heights) - np.count_nonzero(np.isfinite(heights)))
+        considered = np.isfinite(heights) & ~nominal_ground[zone]
 
         best_w, idx, dt_i = -math.inf, None, math.nan
         if considered.any():
