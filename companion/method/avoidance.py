@@ -663,7 +663,7 @@ class PullUpLaw:
                 bounds = [top] if seen >= cfg.descend_known_fraction else []
                 flown = ground_flown_over(grid, p[:2], None if hover else direction, cfg.descend_ground_radius_m)
                 if flown is not None:
-                    bounds.append(float(soften_near_ground(np.array([flown]), ground, ground_band(cfg))[0]))
+                    bounds.append(float(soften_near_ground(np.array([flown]), ground, band)[0]))
                 if not bounds:
                     holding, cmd = True, 0.0
                 elif math.isfinite(min(bounds)):
