@@ -81,6 +81,70 @@ def test_a_phantom_does_not_survive_carve_rays_looks_through_it():
     assert stats.cells_cleared == 1 and n[0] == 0 and np.isnan(h[0])
 
 
+def test_one_feature_seen_through_a_cell_in_many_frames_counts_once():
+    """A feature tracked wrongly (occluded by a mast and still matched, its range past the mast)
+    repeats its line of sight under the mast's cell every frame: with the segments' feature ids
+    the cell counts features, not frames, so ten frames of one feature leave it, and the third
+    distinct feature clears it (two in one frame count two). An agreeing point forgets them."""
+    grid = TerrainGrid(carve_rays=3.0, gate_min_count=10**6, lone_rise_m=math.inf)
+    top = TerrainPoints(0.0, np.array([[16.5, 0.5, -30.0]]), np.eye(3)[None] * 0.01, np.array([1]))
+    grid.insert(top)
+
+    def rays(*ids):
+        return FreeSpaceRays(0.0, np.array([0.0, 0.0, -40.0]), np.array([[20.0, 0.5, -5.0]] * len(ids)), np.array(ids))
+
+    def mapped():
+        return int(grid.height_at(np.array([16.5]), np.array([0.5]))[2][0]) > 0
+
+    for _ in range(10):
+        stats = grid.carve(rays(7))
+        assert stats.cells_passed_under == 1 and stats.cells_cleared == 0
+    assert mapped()
+    grid.carve(rays(8))
+    assert mapped()  # two features
+    grid.insert(top)  # seen again: the disagreement and its features are forgotten
+    grid.carve(rays(7))
+    grid.carve(rays(7, 7))
+    stats = grid.carve(rays(7, 8))
+    assert mapped() and stats.cells_cleared == 0  # 7 counts again after the agreeing point, once; 8
+    stats = grid.carve(rays(8, 9, 10))  # 9 is the third
+    assert stats.cells_cleared == 1 and not mapped()
+
+
+def test_a_line_of_sight_takes_away_only_what_it_surely_crossed():
+    """The lines of sight's direction is known to angle_sigma_rad: at 25 m from the camera a 2 deg
+    sigma puts a segment 0.87 m to either side (1 sigma), beyond carve_lateral_sigma_m (0.5 m), so
+    it may have passed beside a thin mast's cell: five features there leave the cell's height and
+    its floor (and lower its ceiling). At 10 m (0.35 m) the third clears it, as with an exact
+    direction at any distance."""
+    def setup(north):
+        grid = TerrainGrid(carve_rays=3.0, carve_lateral_sigma_m=0.5, gate_min_count=10**6, lone_rise_m=math.inf)
+        grid.insert(TerrainPoints(0.0, np.array([[north, 0.5, -30.0]]), np.eye(3)[None] * 0.01, np.array([1])))
+        grid.raise_floors(TerrainFloors(0.0, np.array([[north, 0.5, -25.0]] * 2)))
+        return grid
+
+    def rays(north, ids, sigma):  # camera at 40 m, 0.5 north: each segment passes the cell at 20 m
+        end = np.array([north + (north - 0.5), 0.5, 0.0])
+        return FreeSpaceRays(0.0, np.array([0.5, 0.5, -40.0]), np.array([end] * len(ids)), np.array(ids), sigma)
+
+    def mapped(grid, north):
+        return int(grid.height_at(np.array([north]), np.array([0.5]))[2][0]) > 0
+
+    far, near, sigma = 25.5, 10.5, np.radians(2.0)
+    grid = setup(far)
+    for fid in range(5):
+        stats = grid.carve(rays(far, [fid], sigma))
+        assert stats.cells_passed_under == 0 and stats.floors_dropped == 0
+    assert mapped(grid, far) and bounds(grid, far)[1] == pytest.approx(25.0)
+    assert bounds(grid, far)[0] == pytest.approx(20.0, abs=0.6)  # the ceiling is still the line's
+    for north, s in ((near, sigma), (far, 0.0)):
+        grid = setup(north)
+        grid.carve(rays(north, [0, 1], s))
+        assert mapped(grid, north)
+        stats = grid.carve(rays(north, [2], s))
+        assert stats.cells_cleared == 1 and not mapped(grid, north) and bounds(grid, north)[1] == -np.inf
+
+
 def test_floors_keep_the_highest_bound_and_a_line_of_sight_below_drops_them():
     grid = TerrainGrid()
     assert grid.raise_floors(TerrainFloors(0.0, np.array([[10.5, 0.5, -4.0], [10.6, 0.4, -6.0]]))) == 1

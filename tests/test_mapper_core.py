@@ -228,6 +228,20 @@ def test_matched_features_gain_confidence_and_unmatched_lose_it():
     assert step.init_index == pytest.approx(20 * (1 - 6 / 10))
 
 
+def test_the_lines_of_sight_carry_their_features_and_the_attitudes_sigma():
+    """The free space a step hands the map names the feature of each segment (so the map counts
+    features, not frames) and the sigma of their direction: the navigation's attitude covariance,
+    its largest axis (docs/terrain.md, "Free space")."""
+    m = mapper(max_features=10)
+    cov = np.diag([0.05**2] * 3 + [0.01] * 3 + list(np.radians([0.5, 0.7, 2.0]) ** 2))
+    uv = grid_pixels()[:10]
+    m.step_measurements(nav_state(cov=cov), uv)
+    step = m.step_measurements(nav_state(cov=cov), uv[:6])
+    fs = step.free_space
+    assert len(fs) == 6 and sorted(fs.feature_ids.tolist()) == sorted(step.matched_ids.tolist())
+    assert fs.angle_sigma_rad == pytest.approx(np.radians(2.0))
+
+
 def test_unmatched_measurement_replaces_lowest_confidence_feature_below_the_index():
     m = mapper(max_features=4)
     nav = nav_state()

@@ -98,11 +98,18 @@ class FreeSpaceRays:
     """Segments the camera saw through this frame, handed from the mapper to the terrain map
     (docs/terrain.md, "Free space"): from the camera centre ``origin_ned_m`` (3,) to each of
     ``ends_ned_m`` (K, 3), the nearest its feature can be (k sigma). Nothing of the terrain lies on
-    a segment: a feature was seen at its end."""
+    a segment: a feature was seen at its end. ``feature_ids`` (K,), the feature of each segment
+    (None: unknown, each frame's segments then count as one look), lets the map count the
+    features that contradict a cell, not the frames (a feature tracked wrongly repeats its error
+    every frame). ``angle_sigma_rad``: the sigma of the lines of sight's direction (the
+    navigation's attitude, its largest axis; 0 = exact): at horizontal distance s from the camera a
+    segment is known laterally to s x that."""
 
     t_s: float
     origin_ned_m: np.ndarray
     ends_ned_m: np.ndarray
+    feature_ids: np.ndarray | None = None
+    angle_sigma_rad: float = 0.0
 
     @classmethod
     def empty(cls, t_s: float = 0.0) -> "FreeSpaceRays":

@@ -700,7 +700,8 @@ class Mapper:
         # it bounds its cell from below every frame (docs/mapper.md, "Bounds of an unconverged feature").
         y_upd, P_upd, R_upd, origin_upd = y_new[ok], P_new[ok], R_ref[point_idx[ok]], db.origin[updated]
         X_upd = model.point(y_upd, R_upd)  # each updated feature's point, for both of its bounds
-        free_space = self._free_space(nav.t_s, pose.p_c, y_upd, P_upd, R_upd, origin_upd, X_upd)
+        angle_sigma = float(np.sqrt(max(np.linalg.eigvalsh(P_x[3:6, 3:6])[-1], 0.0)))  # the attitude's largest axis
+        free_space = self._free_space(nav.t_s, pose.p_c, y_upd, P_upd, R_upd, origin_upd, X_upd, updated_ids, angle_sigma)
         rel = model.relative_depth_sigma(y_upd, P_upd, R_upd, origin_upd)
         depth_sigma = rel * model.depth_from_origin(y_upd, R_upd, origin_upd)
         # an edgel measures one coordinate, a corner two: an edge feature needs twice the updates
@@ -864,15 +865,16 @@ class Mapper:
         return _EdgePairs(p_idx, m_idx, amb, near)
 
     def _free_space(self, t_s: float, camera_ned: np.ndarray, y: np.ndarray, P: np.ndarray, R_ref: np.ndarray,
-                    origin: np.ndarray, X: np.ndarray) -> FreeSpaceRays:
+                    origin: np.ndarray, X: np.ndarray, ids: np.ndarray, angle_sigma: float = 0.0) -> FreeSpaceRays:
         """The segments this frame saw through (docs/mapper.md, "Bounds of an unconverged feature"):
         from the camera centre along the line of sight of each feature (rows of y, P, R_ref, origin;
-        X its point), as far as the nearest the feature can be at ``free_space_sigma`` sigma (the
-        model's ``point_at_sigma``, taken as a range from the camera and laid on the line of sight to
-        the estimate, never beyond the estimate)."""
+        X its point; ids its id; angle_sigma the attitude's sigma, rad), as far as the nearest the
+        feature can be at ``free_space_sigma`` sigma (the model's ``point_at_sigma``, taken as a
+        range from the camera and laid on the line of sight to the estimate, never beyond the
+        estimate)."""
         k = self.cfg.free_space_sigma
         if k <= 0 or len(y) == 0:
-            return FreeSpaceRays(t_s, np.asarray(camera_ned, dtype=float), np.zeros((0, 3)))
+            return FreeSpaceRays(t_s, np.asarray(camera_ned, dtype=float), np.zeros((0, 3)), np.zeros(0, np.int64), angle_sigma)
         near = self.model.point_at_sigma(y, P, R_ref, origin, k)
         to_x = X - camera_ned
         r = np.sqrt((to_x * to_x).sum(axis=1))
@@ -881,7 +883,7 @@ class Mapper:
             reach = np.minimum(r_near, r)
             ends = camera_ned + to_x * (reach / r)[:, None]
         good = np.isfinite(ends).all(axis=1) & (reach > 0)
-        return FreeSpaceRays(t_s, np.asarray(camera_ned, dtype=float).copy(), ends[good])
+        return FreeSpaceRays(t_s, np.asarray(camera_ned, dtype=float).copy(), ends[good], np.asarray(ids, np.int64)[good], angle_sigma)
 
     def _floors(self, t_s: float, y: np.ndarray, P: np.ndarray, R_ref: np.ndarray, origin: np.ndarray,
                 X: np.ndarray | None = None, ids: np.ndarray | None = None) -> TerrainFloors:

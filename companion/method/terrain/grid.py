@@ -26,6 +26,7 @@ from companion.method.terrain.tile import Tile
 _KEY_SHIFT = np.int64(1 << 32)
 _KEY_BIAS = np.int64(1 << 31)
 _COUNT_MAX = np.iinfo(np.uint32).max
+_CONTRADICTION_MEMORY = 4096  # cells remembered before the stale ones are forgotten
 _NEIGHBOUR_DI = np.array([-1, -1, -1, 0, 0, 1, 1, 1])  # the eight neighbours of a cell
 _NEIGHBOUR_DJ = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
 _AROUND_DI = np.r_[0, _NEIGHBOUR_DI]  # a cell (or block) and its eight neighbours, itself first
@@ -143,6 +144,7 @@ class TerrainGrid:
         carve_end_margin_m: float = 1.5,
         carve_margin_m: float = 0.5,
         carve_rays: float = 3.0,
+        carve_lateral_sigma_m: float = 0.5,
         lone_rise_m: float = 1.5,
         lone_block_cells: int = 4,
         frame_tracker: FrameTracker | None = None,
@@ -169,6 +171,7 @@ class TerrainGrid:
         self.carve_end_margin_m = float(carve_end_margin_m)
         self.carve_margin_m = float(carve_margin_m)
         self.carve_rays = float(carve_rays)
+        self.carve_lateral_sigma_m = float(carve_lateral_sigma_m)
         if not (lone_rise_m > 0):
             raise ValueError(f"lone_rise_m must be positive (inf: off), got {lone_rise_m}")
         if not int(lone_block_cells) >= 1:
@@ -196,6 +199,9 @@ class TerrainGrid:
         # cells hold one, so they are a side table (pool cell indices, sorted; heights), not a layer.
         self._pf_cells = np.zeros(0, dtype=np.int64)
         self._pf_height = np.zeros(0)
+        # The features whose lines of sight passed under a cell while its disagreement stands
+        # (pool cell index -> feature ids; few cells at a time, "Free space").
+        self._contradicted_by: dict[int, set[int]] = {}
         # Which feature set each floor (pool cells, sorted; feature ids): a floor follows its feature.
         self._fo_cells = np.zeros(0, dtype=np.int64)
         self._fo_ids = np.zeros(0, dtype=np.int64)
@@ -223,6 +229,7 @@ class TerrainGrid:
             carve_end_margin_m=cfg.carve_end_margin_m,
             carve_margin_m=cfg.carve_margin_m,
             carve_rays=cfg.carve_rays,
+            carve_lateral_sigma_m=cfg.carve_lateral_sigma_m,
             lone_rise_m=cfg.lone_rise_m,
             lone_block_cells=cfg.lone_block_cells,
             frame_tracker=FrameTracker(cfg.frame_min_age_s, cfg.frame_window_s, cfg.frame_min_points,
@@ -597,9 +604,14 @@ class TerrainGrid:
         ``carve_margin_m`` under a cell's height contradicts it: each frame that does counts
         ``reset_evidence / carve_rays`` of disagreement (the evidence-from-below counter, which any
         agreeing point clears), and a cell that reaches ``reset_evidence`` loses its height: a
-        phantom does not survive ``carve_rays`` looks through it. A pending higher height a ray
-        passed under is dropped, and so is a floor (:meth:`raise_floors`). Invalid rays (non-finite, beyond ``max_abs_coordinate_m``) are
-        skipped."""
+        phantom does not survive the lines of sight of ``carve_rays`` features through it (a feature
+        counts once: :meth:`_new_contradicting_features`). A pending higher height a ray passed
+        under is dropped, and so is a floor (:meth:`raise_floors`). Heights, pending heights and
+        floors are taken away only where the segment's lateral sigma (its horizontal distance from
+        the camera times ``rays.angle_sigma_rad``) is at most ``carve_lateral_sigma_m``: farther, the
+        line of sight may have passed beside the cell (a thin mast 2.6 m to its side at 30 m, for a
+        heading 5 deg off); every sample lowers ceilings. Invalid rays (non-finite, beyond
+        ``max_abs_coordinate_m``) are skipped."""
         o = np.asarray(rays.origin_ned_m, dtype=np.float64).reshape(3)
         ends = np.asarray(rays.ends_ned_m, dtype=np.float64).reshape(-1, 3)
         lim = self.max_abs_coordinate_m
@@ -607,6 +619,7 @@ class TerrainGrid:
             return CarveStats()
         good = np.isfinite(ends).all(axis=1) & (np.abs(ends) <= lim).all(axis=1)
         ends = ends[good]
+        use_idx = np.flatnonzero(good)
         d_ne = ends[:, :2] - o[:2]
         length = np.sqrt((d_ne * d_ne).sum(axis=1))
         reach = length - self.carve_end_margin_m
@@ -614,7 +627,7 @@ class TerrainGrid:
         if not use.any():
             return CarveStats(rays=int(len(ends)))
         if not use.all():
-            ends, d_ne, length, reach = ends[use], d_ne[use], length[use], reach[use]
+            ends, d_ne, length, reach, use_idx = ends[use], d_ne[use], length[use], reach[use], use_idx[use]
         step = 0.5 * self.cell_size_m
         start = self.carve_start_m
         n_s = int(np.ceil((reach.max() - start) / step)) + 1
@@ -633,6 +646,13 @@ class TerrainGrid:
         c_old = self._c.reshape(-1)[cells]
         lowered = low < c_old
         self._c.reshape(-1)[cells[lowered]] = low[lowered]
+        # Evidence is taken away only where the line of sight is known to have crossed the cell:
+        # its lateral sigma (horizontal distance x the attitude's sigma) within carve_lateral_sigma_m.
+        sure = s[take] * max(float(rays.angle_sigma_rad), 0.0) <= self.carve_lateral_sigma_m
+        if not sure.all():
+            alt = np.where(sure, alt, np.inf)
+            low = np.full(len(cells), np.inf)
+            np.minimum.at(low, inv, alt)
 
         h = self._h.reshape(-1)[cells].astype(np.float64)
         v = self._v.reshape(-1)[cells].astype(np.float64)
@@ -650,11 +670,17 @@ class TerrainGrid:
         cleared = np.zeros(0, dtype=np.int64)
         if under.any():
             u = cells[under]
-            d = self._d.reshape(-1)[u] + self.reset_evidence / self.carve_rays
-            gone = d >= self.reset_evidence
+            looks = np.ones(len(u))
+            if rays.feature_ids is not None:
+                looks = self._new_contradicting_features(u, under, inv, alt, h, v, np.asarray(rays.feature_ids)[use_idx][ray])
+            u, looks = u[looks > 0], looks[looks > 0]
+            d = self._d.reshape(-1)[u] + looks * (self.reset_evidence / self.carve_rays)
+            gone = d >= self.reset_evidence * (1.0 - 1e-6)  # the layer is float32: thirds do not sum exactly
             d[gone] = 0.0
             self._d.reshape(-1)[u] = d
             cleared = u[gone]
+            for k in cleared.tolist():
+                self._contradicted_by.pop(k, None)
             if len(cleared):
                 self._h.reshape(-1)[cleared] = np.nan
                 self._v.reshape(-1)[cleared] = np.inf
@@ -668,6 +694,43 @@ class TerrainGrid:
         return CarveStats(rays=int(len(ends)), cells_lowered=int(np.count_nonzero(lowered)),
                           cells_passed_under=int(np.count_nonzero(under)), cells_cleared=int(len(cleared)),
                           pending_dropped=int(np.count_nonzero(drop_pending)), floors_dropped=int(np.count_nonzero(drop_floor)))
+
+    def _new_contradicting_features(self, u: np.ndarray, under: np.ndarray, inv: np.ndarray, alt: np.ndarray,
+                                    h: np.ndarray, v: np.ndarray, sample_ids: np.ndarray) -> np.ndarray:
+        """Per cell of ``u`` (the carved cells a segment passed under, ``cells[under]``): how many
+        features not counted against it before passed under it this frame (:meth:`carve`).
+
+        A feature counts once per cell while the cell's disagreement stands (the memory of a cell
+        whose disagreement an agreeing point cleared is stale and forgotten): the same feature
+        seen again says what it said before, so a feature tracked wrongly (its range past the
+        surface it lies on: occluded, or sliding along an outline) cannot clear a surface alone,
+        however many frames it lasts. inv, alt, sample_ids: each segment sample's cell (index into
+        the carved cells), height in the map's frame and feature; h, v: the carved cells' heights
+        and variances."""
+        with np.errstate(invalid="ignore"):
+            thr = h - self.gate_sigma * np.sqrt(v) - self.carve_margin_m
+            below = under[inv] & (alt < thr[inv])
+        rank = np.full(len(under), -1, dtype=np.int64)
+        rank[under] = np.arange(len(u))
+        pairs = np.unique(np.stack([rank[inv[below]], sample_ids[below]], axis=1), axis=0)
+        looks = np.zeros(len(u))
+        d_now = self._d.reshape(-1)[u]
+        memory = self._contradicted_by
+        fresh = d_now <= 0.0  # no disagreement stands: whatever the memory holds is stale
+        for r, fid in pairs.tolist():
+            cell = int(u[r])
+            seen = memory.get(cell)
+            if seen is None or fresh[r]:
+                seen = memory[cell] = set()
+                fresh[r] = False
+            if fid not in seen:
+                seen.add(fid)
+                looks[r] += 1.0
+        if len(memory) > _CONTRADICTION_MEMORY:
+            d_all = self._d.reshape(-1)
+            for cell in [c for c in memory if d_all[c] <= 0.0]:
+                del memory[cell]
+        return looks
 
     def raise_floors(self, floors: TerrainFloors) -> int:
         """Lower bounds on the terrain's height (docs/terrain.md, "Floors"): the floor of the cell
