@@ -113,9 +113,11 @@ def soak_config(sim_port: int, zenoh_port: int, directory: str, speedup: float) 
 
 
 def run_soak(minutes: float, speedup: float = 20.0, every_s: float = 10.0, warmup_s: float = 30.0,
-             log=print) -> dict:
+             log=print, start_lap: int = 0, start_timeout_s: float = 180.0) -> dict:
     """Fly for ``minutes`` wall minutes after take-off; returns the samples, the trends and what
-    went wrong (``error``), if anything."""
+    went wrong (``error``), if anything. With ``start_lap`` the minutes count from the first sample
+    on that lap (the laps before map new ground, so memory grows with the map), and the trends
+    from there (``steady_from_s``); ``start_timeout_s`` bounds the wait for it."""
     from benchmarks.daemon_bench import Pilot, _wait, _wait_listener, free_port, stop_process
     from drivers.sim.harness import MavClient, SimVehicleProcess
 
@@ -149,7 +151,8 @@ def run_soak(minutes: float, speedup: float = 20.0, every_s: float = 10.0, warmu
         if not _wait(lambda: listener.get() is not None, 20.0):
             raise RuntimeError("no status from the daemon")
         t0 = time.monotonic()
-        end = t0 + minutes * 60.0
+        end = t0 + minutes * 60.0 if start_lap <= 0 else t0 + start_timeout_s
+        started = start_lap <= 0
         next_t = t0
         log(f"soak: {minutes:g} min at speed-up {speedup:g}, a sample every {every_s:g} s")
         log(f"{'wall s':>7} {'sim h':>6} {'RSS MB':>7} {'fds':>4} {'thr':>4} {'lap':>4} {'frames':>7} "
@@ -176,7 +179,12 @@ def run_soak(minutes: float, speedup: float = 20.0, every_s: float = 10.0, warmu
                 log(f"{s.wall_s:7.0f} {s.sim_s / 3600:6.2f} {s.rss_mb:7.1f} {s.fds:4d} {s.threads:4d} {s.lap:4d} "
                     f"{s.frames_mapped:7d} {s.frames_dropped:8d} {s.tiles:6d} {s.map_mb:7.2f} {s.snapshots:6d}  {s.command}")
                 next_t += every_s
+                if not started and s.lap >= start_lap:
+                    started, end = True, now + minutes * 60.0
+                    result["steady_from_s"] = s.wall_s
             if now >= end:
+                if not started:
+                    raise RuntimeError(f"the daemon did not reach lap {start_lap} in {start_timeout_s:g} s")
                 break
             time.sleep(max(0.0, min(next_t, end) - time.monotonic()))
     except Exception as exc:  # noqa: BLE001 - reported with the samples taken so far
@@ -200,7 +208,7 @@ def run_soak(minutes: float, speedup: float = 20.0, every_s: float = 10.0, warmu
                 pass
         tmp.cleanup()
     result["samples"] = [asdict(s) for s in samples]
-    result["trends"] = trends(samples, warmup_s)
+    result["trends"] = trends(samples, max(warmup_s, result.get("steady_from_s", 0.0)))
     if samples:
         result["simulated_hours"] = round(samples[-1].sim_s / 3600.0, 2)
     return result

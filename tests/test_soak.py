@@ -1,9 +1,11 @@
-"""Soak, short version: the daemon flies the circuit at 8x speed for 42 wall seconds
-(about 6 simulated minutes, two or three laps) while its memory, file descriptors and threads are sampled
-from /proc every 3 s. ``python -m benchmarks.soak --minutes 10`` is the long run
+"""Soak, short version: the daemon flies the circuit at 8x speed, and from its second lap on (the
+first maps new ground, and the memory grows with the map) for 36 wall seconds, while its memory,
+file descriptors and threads are sampled from /proc every 3 s. ``python -m benchmarks.soak --minutes 10`` is the long run
 (docs/reliability.md has its figures).
 
-Tolerances, after a 15 s warm-up (start-up imports, first frames, the first lap's new ground):
+Tolerances, from the second lap and at least 15 s after take-off (start-up imports, first frames,
+the first lap's new ground: on a loaded machine the first lap ends later, and a window counted in
+wall seconds caught its last new tiles as growth):
 - open file descriptors: range <= 2 (a leaked socket or file per reconnect/snapshot would show as
   a steady climb: there are dozens of snapshots and thousands of frames in the window);
 - threads: range <= 3 (asyncio's executor starts its workers lazily, up to a fixed bound);
@@ -21,12 +23,12 @@ pytestmark = pytest.mark.slow
 
 
 def test_short_soak_keeps_memory_descriptors_and_threads_flat():
-    result = run_soak(minutes=0.7, speedup=8.0, every_s=3.0, warmup_s=15.0)
+    result = run_soak(minutes=0.6, speedup=8.0, every_s=3.0, warmup_s=15.0, start_lap=2)
     print()
     print_trends(result)
     assert result["error"] == "", result.get("daemon_log_tail", "")
     assert result["daemon_exit"] == 0
-    steady = [s for s in result["samples"] if s["wall_s"] >= 15.0]
+    steady = [s for s in result["samples"] if s["wall_s"] >= max(15.0, result["steady_from_s"])]
     assert len(steady) >= 8
     # The daemon really worked through the window.
     assert steady[-1]["frames_mapped"] > steady[0]["frames_mapped"] + 50
