@@ -109,6 +109,8 @@ def test_one_feature_seen_through_a_cell_in_many_frames_counts_once():
     assert mapped() and stats.cells_cleared == 0  # 7 counts again after the agreeing point, once; 8
     stats = grid.carve(rays(8, 9, 10))  # 9 is the third
     assert stats.cells_cleared == 1 and not mapped()
+    with pytest.raises(ValueError, match="feature_ids"):  # a malformed message, not a silent miscount
+        grid.carve(FreeSpaceRays(0.0, np.array([0.0, 0.0, -40.0]), np.array([[20.0, 0.5, -5.0]]), np.array([1, 2])))
 
 
 def test_a_line_of_sight_takes_away_only_what_it_surely_crossed():

@@ -601,7 +601,7 @@ class TerrainGrid:
         (nearer, a line of sight at the camera's own height bounds nothing) to
         ``carve_end_margin_m`` short of its end (a feature's own cell, and a wall whose face it
         lies on, are never carved). A ray passing more than ``gate_sigma`` sigma +
-        ``carve_margin_m`` under a cell's height contradicts it: each frame that does counts
+        ``carve_margin_m`` under a cell's height contradicts it: each feature that does counts
         ``reset_evidence / carve_rays`` of disagreement (the evidence-from-below counter, which any
         agreeing point clears), and a cell that reaches ``reset_evidence`` loses its height: a
         phantom does not survive the lines of sight of ``carve_rays`` features through it (a feature
@@ -614,6 +614,8 @@ class TerrainGrid:
         ``max_abs_coordinate_m``) are skipped."""
         o = np.asarray(rays.origin_ned_m, dtype=np.float64).reshape(3)
         ends = np.asarray(rays.ends_ned_m, dtype=np.float64).reshape(-1, 3)
+        if rays.feature_ids is not None and np.shape(rays.feature_ids) != (len(ends),):
+            raise ValueError(f"free space: feature_ids must have shape ({len(ends)},), got {np.shape(rays.feature_ids)}")
         lim = self.max_abs_coordinate_m
         if len(ends) == 0 or not (np.isfinite(o).all() and np.abs(o).max() <= lim):
             return CarveStats()
