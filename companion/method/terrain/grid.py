@@ -660,7 +660,8 @@ class TerrainGrid:
         v = self._v.reshape(-1)[cells].astype(np.float64)
         p = self._p.reshape(-1)[cells].astype(np.float64)
         with np.errstate(invalid="ignore"):
-            under = (self._n.reshape(-1)[cells] > 0) & (low < h - self.gate_sigma * np.sqrt(v) - self.carve_margin_m)
+            thr = h - self.gate_sigma * np.sqrt(v) - self.carve_margin_m  # a segment below this contradicts the cell
+            under = (self._n.reshape(-1)[cells] > 0) & (low < thr)
             drop_pending = low < p
         if drop_pending.any():
             self._p.reshape(-1)[cells[drop_pending]] = np.nan
@@ -674,7 +675,7 @@ class TerrainGrid:
             u = cells[under]
             looks = np.ones(len(u))
             if rays.feature_ids is not None:
-                looks = self._new_contradicting_features(u, under, inv, alt, h, v, np.asarray(rays.feature_ids)[use_idx][ray])
+                looks = self._new_contradicting_features(u, under, inv, alt < thr[inv], np.asarray(rays.feature_ids)[use_idx][ray])
             u, looks = u[looks > 0], looks[looks > 0]
             d = self._d.reshape(-1)[u] + looks * (self.reset_evidence / self.carve_rays)
             gone = d >= self.reset_evidence * (1.0 - 1e-6)  # the layer is float32: thirds do not sum exactly
@@ -697,8 +698,8 @@ class TerrainGrid:
                           cells_passed_under=int(np.count_nonzero(under)), cells_cleared=int(len(cleared)),
                           pending_dropped=int(np.count_nonzero(drop_pending)), floors_dropped=int(np.count_nonzero(drop_floor)))
 
-    def _new_contradicting_features(self, u: np.ndarray, under: np.ndarray, inv: np.ndarray, alt: np.ndarray,
-                                    h: np.ndarray, v: np.ndarray, sample_ids: np.ndarray) -> np.ndarray:
+    def _new_contradicting_features(self, u: np.ndarray, under: np.ndarray, inv: np.ndarray, sample_below: np.ndarray,
+                                    sample_ids: np.ndarray) -> np.ndarray:
         """Per cell of ``u`` (the carved cells a segment passed under, ``cells[under]``): how many
         features not counted against it before passed under it this frame (:meth:`carve`).
 
@@ -706,12 +707,10 @@ class TerrainGrid:
         whose disagreement an agreeing point cleared is stale and forgotten): the same feature
         seen again says what it said before, so a feature tracked wrongly (its range past the
         surface it lies on: occluded, or sliding along an outline) cannot clear a surface alone,
-        however many frames it lasts. inv, alt, sample_ids: each segment sample's cell (index into
-        the carved cells), height in the map's frame and feature; h, v: the carved cells' heights
-        and variances."""
-        with np.errstate(invalid="ignore"):
-            thr = h - self.gate_sigma * np.sqrt(v) - self.carve_margin_m
-            below = under[inv] & (alt < thr[inv])
+        however many frames it lasts. inv, sample_below, sample_ids: each segment sample's cell
+        (index into the carved cells), whether it passed under that cell's contradiction threshold,
+        and its feature."""
+        below = under[inv] & sample_below
         rank = np.full(len(under), -1, dtype=np.int64)
         rank[under] = np.arange(len(u))
         pairs = np.unique(np.stack([rank[inv[below]], sample_ids[below]], axis=1), axis=0)
