@@ -518,7 +518,7 @@ class ZenohBus:
         return n
 
     def _publish_json(self, which: str, schema: str, body: Mapping[str, Any], add_stats: bool = False) -> bytes:
-        if add_stats:
+        if add_stats and "zenoh" not in body:  # a body that observed the bus itself keeps its look
             body = {**body, "zenoh": self.stats().as_dict()}
         with self._lock:
             # The sequence number only advances for a message that encodes (a rejected body
@@ -542,7 +542,8 @@ class ZenohBus:
         return payload
 
     def publish_status(self, body: Mapping[str, Any]) -> bytes:
-        """Publish ``companion.status/1`` (the bus adds the envelope and its own counters as ``zenoh``)."""
+        """Publish ``companion.status/1`` (the bus adds the envelope and, unless ``body`` carries
+        them already, its own counters as ``zenoh``)."""
         return self._publish_json("status", STATUS_SCHEMA, body, add_stats=True)
 
     def publish_avoidance(self, body: Mapping[str, Any]) -> bytes:

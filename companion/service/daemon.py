@@ -679,7 +679,10 @@ class Daemon:
             problems.append(f"camera {self.camera_state}: {self.camera_error}".rstrip(": "))
         if self.snapshot_error:
             problems.append(self.snapshot_error)
-        zenoh_link = self.zenoh_link_state()
+        # One look at the bus a message: its links and the problem they raise come from the same
+        # observation (a link that came up between two looks made a status say both up and down).
+        zenoh_stats = None if self.bus is None else self.bus.stats().as_dict()
+        zenoh_link = "off" if zenoh_stats is None else ("up" if zenoh_stats["links"] > 0 else "down")
         if zenoh_link == "down" and self.cfg.zenoh.connect:
             # Only an expected peer or router missing is a problem; nobody listening in is normal.
             problems.append(f"zenoh link down (connect {', '.join(self.cfg.zenoh.connect)})")
@@ -698,6 +701,7 @@ class Daemon:
         return {
             "health": "ok" if not problems else "degraded",
             "problems": problems,
+            "zenoh_link": zenoh_link,
             "uptime_s": round(uptime, 1),
             "command": self.command_state,
             **link,  # link, streams, rates_hz, nav, time, rejected, commanding, truth (docs/mavlink.md)
@@ -746,13 +750,8 @@ class Daemon:
                 "last_ok_age_s": None if self.snapshot_ok_t is None else round(now - self.snapshot_ok_t, 1),
                 "last": self.snapshot_last, "loaded": self.snapshot_loaded,
             },
+            **({} if zenoh_stats is None else {"zenoh": zenoh_stats}),
         }
-
-    def zenoh_link_state(self) -> str:
-        """"off" (zenoh.enabled false), "up" (a peer or router connected) or "down"."""
-        if self.bus is None:
-            return "off"
-        return "up" if self.bus.link_up else "down"
 
     async def _status_loop(self) -> None:
         rate = self.cfg.zenoh.status_rate_hz
@@ -764,7 +763,7 @@ class Daemon:
                 self.bus.publish_status(status)
             summary = (f"{status['health']}; link {self.link.state}; camera {self.camera_state}; "
                        f"mapped {self.frames_mapped} frames; {status['map']['tiles']} tiles; {status['map']['cells']} cells; "
-                       f"zenoh {self.zenoh_link_state()}; snapshots {status['snapshots']['state']}; {self.command_state}")
+                       f"zenoh {status['zenoh_link']}; snapshots {status['snapshots']['state']}; {self.command_state}")
             self.notifier.status(summary)
             n += 1
             if n % max(1, int(10 * rate)) == 0:
