@@ -725,11 +725,13 @@ def test_the_view_limit_stops_the_vehicle_for_what_the_camera_has_not_seen():
     (1 - s) h_c below the camera is in view D = (1 - s) h_c / tan 30 deg ahead; from the limit
     speed the vehicle flies the latency and the reaction time, brakes at the configured rate and
     stops exactly at the miss distance before D. Level or upward views, the option off and hovering
-    give no limit; the command's limit is the lesser of the view's and the map's."""
+    give no limit; the command's limit is the lesser of the view's and the map's. (The flat ground
+    mapped here would let the known horizon pass beyond the view: that is the next tests', so it
+    counts lines of sight alone here.)"""
     from companion.method.avoidance import view_distance, view_speed_limit
     cfg = AvoidanceConfig(**{**{f: getattr(CFG, f) for f in CFG.__dataclass_fields__}, "speed_limit_shortfall": 0.1,
                              "brake_accel_mps2": 2.0, "reaction_time_s": 0.5, "map_latency_s": 1.5,
-                             "view_speed_limit": True})
+                             "view_speed_limit": True, "known_horizon_mapped": False})
     dep = math.radians(30.0)
     d = view_distance(dep, cfg)
     assert d == pytest.approx(0.9 * cfg.clearance_m / math.tan(dep))
@@ -825,6 +827,74 @@ def test_the_known_horizon_lets_the_vehicle_fly_on_over_ground_lines_of_sight_ha
     assert not (c.ceiling_m[(c.along_m > 1.0) & (c.along_m < 15.0)] <= danger).all()
     assert PullUpLaw(cfg).command(here, vel, near_gap, view_depression_rad=dep).view_speed_limit_mps == pytest.approx(
         view_speed_limit(end + cfg.miss_distance_m, cfg))
+
+
+def _mapped_ground(sigma_m=0.1, gap_n=None, high=None):
+    """Flat ground mapped at 0 (each cell one point of ``sigma_m``) from north -30 to 150, east -20 to
+    20; no cells north of ``gap_n[0]`` up to ``gap_n[1]``; ``high`` (north, height): a row of cells
+    across the corridor at that north mapped at that height."""
+    n, e = np.meshgrid(np.arange(-30, 150) + 0.5, np.arange(-20, 20) + 0.5, indexing="ij")
+    keep = np.ones(n.shape, bool) if gap_n is None else ~((n > gap_n[0]) & (n < gap_n[1]))
+    z = np.zeros(n.shape)
+    if high is not None:
+        z[np.abs(n - high[0]) < 0.6] = high[1]
+    pos = np.c_[n[keep], e[keep], -z[keep]]
+    grid = TerrainGrid(gate_min_count=10**6)
+    grid.insert(TerrainPoints(0.0, pos, np.tile(np.eye(3) * sigma_m**2, (len(pos), 1, 1))))
+    return grid
+
+
+def test_the_known_horizon_passes_over_ground_the_map_holds_low():
+    """docs/avoidance.md, "The known horizon": a mapped cell the law takes (its risk quantile
+    h + k sigma) at most z_danger = h - (1 - s) h_c high is proven as a line of sight below z_danger
+    proves it. Commanded height = clearance = 15 m (z_danger 1.5 m), top row 30 deg down: over flat
+    ground mapped to +-0.1 m the horizon is the corridor's end and the vehicle flies on; an unmapped
+    strip, or a row mapped 3 m high, ends it exactly at its nearest cell's entry distance (brute
+    force from the map); ground mapped to +-3 m a point (its surface, fused with its neighbours, to
+    about +-0.8 m: 0 + 2 sigma above z_danger) proves nothing, and
+    with the option off the view limit stands alone."""
+    from companion.method.avoidance import entry_distance, view_distance, view_speed_limit
+    base = {f: getattr(CFG, f) for f in CFG.__dataclass_fields__}
+    cfg = AvoidanceConfig(**{**base, "clearance_m": 15.0, "nominal_alt_m": 15.0, "speed_limit_shortfall": 0.1,
+                             "brake_accel_mps2": 2.0, "reaction_time_s": 0.5, "map_latency_s": 1.5,
+                             "height_margin_sigma": 2.0, "view_speed_limit": True, "known_horizon": True,
+                             "known_horizon_mapped": True, "lookahead_m": 100.0, "ground_band_m": 1.0})
+    off = AvoidanceConfig(**{**{f: getattr(cfg, f) for f in cfg.__dataclass_fields__}, "known_horizon_mapped": False})
+    dep = math.radians(30.0)
+    d = view_distance(dep, cfg)
+    radius = cfg.miss_distance_m + math.sqrt(0.5)
+    here, vel = [0.0, 0.5, -cfg.nominal_alt_m], [6.0, 0.0, 0.0]
+    view_only = view_speed_limit(d, cfg)
+
+    known = _mapped_ground()
+    cmd = PullUpLaw(cfg).command(here, vel, known, view_depression_rad=dep)
+    end = cfg.lookahead_m - radius
+    assert not cmd.engaged and cmd.known_horizon_m == pytest.approx(end)
+    assert cmd.view_speed_limit_mps == pytest.approx(view_speed_limit(end + cfg.miss_distance_m, cfg))
+    assert cmd.view_speed_limit_mps > 2.0 * view_only
+    assert PullUpLaw(off).command(here, vel, known, view_depression_rad=dep).view_speed_limit_mps == pytest.approx(view_only)
+
+    def first_entry(grid, unproven):
+        c = grid.corridor(np.array(here[:2]), np.array([1.0, 0.0]), cfg.lookahead_m, radius)
+        sel = (c.along_m + math.sqrt(0.5) > d) & unproven(c)
+        return float(entry_distance(c.along_m[sel], c.cross_m[sel], radius).min())
+
+    gap = _mapped_ground(gap_n=(60.0, 66.0))
+    expect = first_entry(gap, lambda c: ~(c.count > 0))
+    assert 50.0 < expect < 60.0
+    cmd = PullUpLaw(cfg).command(here, vel, gap, view_depression_rad=dep)
+    assert cmd.known_horizon_m == pytest.approx(expect)
+    v = cmd.view_speed_limit_mps
+    assert v * 2.0 + v * v / (2.0 * cfg.brake_accel_mps2) == pytest.approx(expect)
+
+    ridge = _mapped_ground(high=(70.5, 3.0))
+    expect = first_entry(ridge, lambda c: c.height_m > 1.0)
+    assert 60.0 < expect < 70.0
+    assert PullUpLaw(cfg).command(here, vel, ridge, view_depression_rad=dep).known_horizon_m == pytest.approx(expect)
+
+    vague = _mapped_ground(sigma_m=3.0)
+    cmd = PullUpLaw(cfg).command(here, vel, vague, view_depression_rad=dep)
+    assert cmd.view_speed_limit_mps == pytest.approx(view_only) and cmd.known_horizon_m < d
 
 
 def test_the_operator_learns_what_the_mount_allows_in_level_flight():

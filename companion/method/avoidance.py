@@ -546,19 +546,25 @@ def soften_near_ground(height_m: np.ndarray, ground_m: float, band_m: float) -> 
 
 
 def known_horizon(along_m: np.ndarray, cross_m: np.ndarray, ceiling_m: np.ndarray, radius_m: float, cell_m: float,
-                  view_distance_m: float, danger_m: float, lookahead_m: float) -> float:
+                  view_distance_m: float, danger_m: float, lookahead_m: float,
+                  mapped_height_m: np.ndarray | None = None) -> float:
     """How far (m, along track) the vehicle can fly before it comes within ``radius_m`` of terrain
     that may need a climb and that the camera does not see now (docs/avoidance.md, "The known
     horizon"). Within ``view_distance_m`` the camera sees every such terrain (:func:`view_distance`);
     beyond it, a cell a line of sight crossed below ``danger_m`` (its ``ceiling_m``: the terrain
-    there is lower) holds none. The horizon is the entry distance (:func:`entry_distance`) of the
+    there is lower) holds none, nor, given ``mapped_height_m`` (K,; NaN unmapped), a mapped cell
+    the law takes at most ``danger_m`` high (its risk quantile: the map's evidence holds it low,
+    and the law already stakes the clearance on that height). The horizon is the entry distance (:func:`entry_distance`) of the
     nearest cell reaching beyond the view (its centre within half a diagonal of ``cell_m`` of it, or
     past it) with no such ceiling, or of the corridor's end (``lookahead_m - radius_m``) when there
     is none. Corridor cells (K,): ``along_m`` and ``cross_m`` relative to the vehicle and its
     direction, ``ceiling_m`` (inf: no line of sight)."""
     beyond = along_m > view_distance_m - cell_m * math.sqrt(0.5)
     with np.errstate(invalid="ignore"):
-        unproven = beyond & ~(ceiling_m <= danger_m)
+        proven = ceiling_m <= danger_m
+        if mapped_height_m is not None:
+            proven |= mapped_height_m <= danger_m
+        unproven = beyond & ~proven
     if not unproven.any():
         return max(lookahead_m - radius_m, 0.0)
     return max(float(entry_distance(along_m[unproven], cross_m[unproven], radius_m).min()), 0.0)
@@ -633,6 +639,9 @@ class PullUpLaw:
             # the nominal command's to follow, never an obstacle (docs/avoidance.md).
             nominal_ground = (corridor_heights - ground <= band) if band > 0.0 and nominal_above >= cfg.clearance_m \
                 else np.zeros(len(corridor_heights), bool)
+        # What the map holds of each mapped cell, as the law takes it before the ground band: the
+        # known horizon passes over the cells it holds low (docs/avoidance.md, "The known horizon").
+        mapped_law_h = np.where((corr.count > 0) & np.isfinite(corr.height_m), corridor_heights, np.nan)
         corridor_heights = soften_near_ground(corridor_heights, ground, band)
         heights = corridor_heights[zone]
         along, cross = corridor_along[zone], corr.cross_m[zone]
@@ -684,7 +693,7 @@ class PullUpLaw:
                 horizon = known_horizon(corridor_along[ahead_all], corr.cross_m[ahead_all], corr.ceiling_m[ahead_all],
                                         radius, grid.cell_size_m, view_m,
                                         alt - cfg.clearance_m * (1.0 - cfg.speed_limit_shortfall),
-                                        cfg.lookahead_m)
+                                        cfg.lookahead_m, mapped_law_h[ahead_all] if cfg.known_horizon_mapped else None)
                 reach_m = max(view_m, horizon + cfg.miss_distance_m)
             view_limit = view_speed_limit(reach_m, cfg)
             limit = min(limit, view_limit)
