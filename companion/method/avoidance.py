@@ -639,9 +639,7 @@ class PullUpLaw:
             # the nominal command's to follow, never an obstacle (docs/avoidance.md).
             nominal_ground = (corridor_heights - ground <= band) if band > 0.0 and nominal_above >= cfg.clearance_m \
                 else np.zeros(len(corridor_heights), bool)
-        # What the map holds of each mapped cell, as the law takes it before the ground band: the
-        # known horizon passes over the cells it holds low (docs/avoidance.md, "The known horizon").
-        mapped_law_h = np.where((corr.count > 0) & np.isfinite(corr.height_m), corridor_heights, np.nan)
+        law_h = corridor_heights  # as the law takes each cell before the ground band: the known horizon's
         corridor_heights = soften_near_ground(corridor_heights, ground, band)
         heights = corridor_heights[zone]
         along, cross = corridor_along[zone], corr.cross_m[zone]
@@ -688,12 +686,16 @@ class PullUpLaw:
         if cfg.view_speed_limit and not hover:
             reach_m = view_m
             if cfg.known_horizon and math.isfinite(view_m) and corr.ceiling_m is not None:
-                # Beyond the view, stop only before what no line of sight has proven low.
+                # Beyond the view, stop only before what neither a line of sight nor the map has
+                # proven low (docs/avoidance.md, "The known horizon").
                 ahead_all = corridor_along >= 0.0
+                mapped_h = None
+                if cfg.known_horizon_mapped:
+                    mapped_h = np.where((corr.count > 0) & np.isfinite(corr.height_m), law_h, np.nan)[ahead_all]
                 horizon = known_horizon(corridor_along[ahead_all], corr.cross_m[ahead_all], corr.ceiling_m[ahead_all],
                                         radius, grid.cell_size_m, view_m,
                                         alt - cfg.clearance_m * (1.0 - cfg.speed_limit_shortfall),
-                                        cfg.lookahead_m, mapped_law_h[ahead_all] if cfg.known_horizon_mapped else None)
+                                        cfg.lookahead_m, mapped_h)
                 reach_m = max(view_m, horizon + cfg.miss_distance_m)
             view_limit = view_speed_limit(reach_m, cfg)
             limit = min(limit, view_limit)
