@@ -643,11 +643,6 @@ class ZenohBus:
         except zenoh.ZError:  # the session is closing underneath us
             return []
 
-    @property
-    def link_up(self) -> bool:
-        """At least one peer or router is connected (a peer session alone is not a link)."""
-        return bool(self.links())
-
     def _observe_links(self) -> int:
         """Count open links; an up/down change is counted and logged once (polled by :meth:`stats`)."""
         n = len(self.links())

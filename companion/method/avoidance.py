@@ -554,8 +554,8 @@ def known_horizon(along_m: np.ndarray, cross_m: np.ndarray, ceiling_m: np.ndarra
     beyond it, a cell a line of sight crossed below ``danger_m`` (its ``ceiling_m``: the terrain
     there is lower) holds none, nor, given ``mapped_height_m`` (K,; NaN unmapped), a mapped cell
     the law takes at most ``danger_m`` high (its risk quantile: the map's evidence holds it low,
-    and the law already stakes the clearance on that height). The horizon is the entry distance (:func:`entry_distance`) of the
-    nearest cell reaching beyond the view (its centre within half a diagonal of ``cell_m`` of it, or
+    and the law already stakes the clearance on that height). The horizon is the entry distance
+    (:func:`entry_distance`) of the nearest cell reaching beyond the view (its centre within half a diagonal of ``cell_m`` of it, or
     past it) with no such ceiling, or of the corridor's end (``lookahead_m - radius_m``) when there
     is none. Corridor cells (K,): ``along_m`` and ``cross_m`` relative to the vehicle and its
     direction, ``ceiling_m`` (inf: no line of sight)."""
