@@ -457,6 +457,33 @@ def test_the_nominal_altitude_stands_on_the_mapped_ground_and_its_noise_does_not
     assert c.engaged and c.limiting_height_m == pytest.approx(0.8 + 2.0 * (1.5 - 1.0), abs=1e-5)
 
 
+def test_the_default_band_leaves_a_one_point_ground_cell_its_margin_and_an_obstacle_its_clearance():
+    """At the defaults (clearance 15 m, k = 2, band 1.5 m) a ground cell holding one point
+    (sigma 0.35 m) 0.5 m above well-observed ground, 2.5 m ahead, is taken at h + 2 sigma = 1.2 m,
+    within the band: the nominal command holds. With a 1 m band the same cell sits on the ramp and
+    engages the law (0.4 m of climb asked). A 3 m rise (2 b) is taken in full, and a 2.2 m one
+    loses 2 b - x, at most the band: the clearance over it stays 0.9 h_c or more."""
+    cfg = dataclasses.replace(AvoidanceConfig(), local_radius_m=0.0)
+    assert cfg.clearance_m == 15.0 and cfg.height_margin_sigma == 2.0 and ground_band(cfg) == pytest.approx(1.5)
+
+    def ground_with(height, variance):
+        grid = with_variance(mapped([[40.5, 0.5, height]]), 0.01)
+        tile = grid.tile((1, 0))
+        tile.variance[40 % 32, 0] = variance
+        grid.put_tile(tile)
+        return grid
+
+    one_point = ground_with(0.5, 0.35**2)
+    held = PullUpLaw(cfg).command([38, 0.5, -15.0], [5, 0, 0], one_point)
+    assert not held.engaged and held.climb_rate_mps == pytest.approx(0.0, abs=1e-3)
+    narrow = PullUpLaw(dataclasses.replace(cfg, ground_band_m=1.0)).command([38, 0.5, -15.0], [5, 0, 0], one_point)
+    assert narrow.engaged and narrow.limiting_height_m == pytest.approx(2.0 * (0.5 + 0.7 - 1.0), abs=1e-4)
+    for rise, taken in ((3.0, 3.2), (2.2, 2.0 * (2.4 - 1.5))):
+        c = PullUpLaw(cfg).command([38, 0.5, -15.0], [5, 0, 0], ground_with(rise, 0.01))
+        assert c.engaged and c.limiting_height_m == pytest.approx(taken, abs=1e-4)
+        assert c.limiting_height_m + cfg.clearance_m >= rise + 0.9 * cfg.clearance_m
+
+
 def with_variance(grid, variance):
     """A copy of ``grid`` whose known cells all have ``variance`` (m^2)."""
     out = TerrainGrid(gate_min_count=10**6)
