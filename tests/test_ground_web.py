@@ -100,9 +100,13 @@ def test_the_page_draws_the_map_lists_the_vehicle_and_follows_new_tiles(browser)
         for t in (tile(0, 0, 0.0), tile(0, 1, 10.0), tile(1, 0, 5.0, known_rows=T // 2)):
             bus.publish_tile(t.tx, t.ty, encode_tile(t))
         with served_page(browser, cfg(connect=(ep,)), tiles=3) as (page, web):
-            # Status and avoidance are published after the page is up: they reach it live.
+            # Status and avoidance are published after the page is up: they reach it live, each
+            # on its own (the station may hand them over in separate batches), so wait for both.
+            def live() -> bool:
+                return page.text_content("#engaged") == "ENGAGED" and page.text_content("#health") == "ok"
+
             deadline = time.monotonic() + 15
-            while page.text_content("#engaged") != "ENGAGED" and time.monotonic() < deadline:
+            while not live() and time.monotonic() < deadline:
                 bus.publish_status(STATUS)
                 bus.publish_avoidance(AVOIDANCE)
                 time.sleep(0.1)
