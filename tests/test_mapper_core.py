@@ -8,7 +8,7 @@ import pytest
 from companion.config import MapperConfig
 from companion.method.geometry import CameraMount, PinholeCamera, euler_to_quat
 from companion.method.mapper import Mapper, cartesian, inverse_depth
-from companion.method.mapper.mapper import ConsistencyScale
+from companion.method.mapper.mapper import ConsistencyScale, tilt_covariance
 from companion.method.mapper.matching import gate_and_match, innovation_covariance, mahalanobis_distances
 from companion.method.mapper.projection import CameraPose
 from companion.method.mapper.update import ekf_update
@@ -335,24 +335,52 @@ def test_consistency_scale_is_the_running_mean_innovation_squared_over_two():
     assert high.scale == pytest.approx(10.0)
 
 
-@pytest.mark.parametrize("calibrate", [True, False])
-def test_emitted_points_carry_the_filter_covariance_times_the_consistency_scale(calibrate):
-    """The points sent to the map, and only they, are scaled: the features keep the filter's own."""
+@pytest.mark.parametrize("calibrate, tilt", [(True, True), (False, True), (True, False)])
+def test_emitted_points_carry_the_filter_covariance_times_the_consistency_scale(calibrate, tilt):
+    """The points sent to the map, and only they, are scaled: the features keep the filter's own.
+    The navigation's tilt is added to the points after the scale (it is not the filter's)."""
     rng = np.random.default_rng(5)
     world = np.array([[30.0, 0.0, 0.0], [32.0, 5.0, 0.0], [28.0, -4.0, 0.0], [35.0, -2.0, 0.0]])
-    m = mapper(max_features=10, calibration_min_updates=20.0, calibrate_point_covariance=calibrate)
+    m = mapper(max_features=10, calibration_min_updates=20.0, calibrate_point_covariance=calibrate,
+               point_tilt_covariance=tilt)
     checked = 0
     for k, step, _ in flight(m, world, 150, rng):
         assert step.point_covariance_scale == (m.consistency.scale if calibrate else 1.0)
         if len(step.points):
             before = m.features()  # the emitted features are still in the database this step
             i = np.searchsorted(before.ids, step.points.feature_ids)
-            own = before.covariances[i]
-            np.testing.assert_allclose(step.points.covariances, own * step.point_covariance_scale, rtol=1e-9)
+            expected = before.covariances[i] * step.point_covariance_scale
+            if tilt:  # flight(): the camera where the mount puts it, 0.05 deg of attitude sigma per axis
+                p = np.array([6.0 * k / 16.0, 0.0, -15.0])
+                p_c, _ = m.mount.camera_pose(p, np.eye(3))
+                expected = expected + tilt_covariance(step.points.positions_ned_m - p_c, np.eye(3) * np.radians(0.05) ** 2)
+            np.testing.assert_allclose(step.points.covariances, expected, rtol=1e-9)
             checked += len(step.points)
     assert checked >= 3
     if calibrate:  # 0.5 px measured, 1 px told
         assert 0.1 <= m.consistency.scale < 0.6
+
+
+def test_the_tilt_of_the_navigation_turns_a_point_about_the_camera_by_its_lever_arm():
+    """tilt_covariance is the first-order covariance of ``c + Exp(-e) (X - c)`` for a roll/pitch
+    error ``e`` (docs/mapper.md, "The navigation's tilt"): its Jacobian against finite
+    differences of the rotation, the height's sigma the horizontal lever arm times the tilt's
+    sigma, nothing for a point straight below the camera, and nothing from the yaw."""
+    from companion.method.geometry import so3_exp
+
+    r = np.array([[25.0, 3.0, 15.0], [0.0, 0.0, 15.0], [-8.0, 20.0, 4.0]])  # from the camera, NED
+    for lever in r:
+        h = 1e-6
+        J = np.column_stack([(so3_exp(-h * axis) @ lever - so3_exp(h * axis) @ lever) / (2 * h) for axis in np.eye(3)])
+        P = np.diag([0.3, 0.7, 0.0]) * 1e-4  # no yaw: the full Jacobian applies
+        np.testing.assert_allclose(tilt_covariance(lever[None], P)[0], J @ P @ J.T, rtol=1e-6, atol=1e-14)
+    one_deg = np.diag(np.radians([1.0, 1.0, 5.0])) ** 2
+    cov = tilt_covariance(r, one_deg)
+    np.testing.assert_allclose(np.sqrt(cov[:, 2, 2]), np.hypot(r[:, 0], r[:, 1]) * np.radians(1.0), rtol=1e-12)
+    assert np.sqrt(cov[0, 2, 2]) == pytest.approx(0.44, abs=0.01)   # 25 m ahead, 1 deg: 0.44 m
+    assert cov[1, 2, 2] == 0.0                                        # below the camera: no height error
+    yaw_only = tilt_covariance(r, np.diag([0.0, 0.0, np.radians(5.0) ** 2]))
+    assert np.all(yaw_only == 0.0)
 
 
 def test_database_never_exceeds_capacity():

@@ -83,6 +83,24 @@ def emission_depth_sigma_limit(height_above_m: np.ndarray, cfg: MapperConfig) ->
     return np.maximum(cfg.converged_max_depth_sigma_m, cfg.converged_depth_sigma_per_height * dh)
 
 
+def tilt_covariance(lever_ned: np.ndarray, P_attitude: np.ndarray) -> np.ndarray:
+    """The covariance (K, 3, 3) a point at ``lever_ned`` (K, 3) from the camera takes from the
+    navigation's roll and pitch error (docs/mapper.md, "The navigation's tilt"). An attitude error
+    ``e`` (a rotation vector in NED, ``R_true = Exp(e) R_est``) turns every line of sight of the
+    moment about the camera, so a point triangulated then sits at ``X = c + Exp(-e) (X_true - c)``,
+    to first order ``X - X_true = [r]x e`` with ``r = X - c``: ``J = [r]x``, covariance
+    ``J P_e J^T``. Only the tilt (the N and E components of ``e``; ``P_attitude`` (3, 3) in NED) is
+    taken: the vehicle does not share it (a vertical error of the estimate moves the vehicle and
+    the map together, a tilt raises the map ahead by the lever arm times the angle: 0.4 m at 25 m
+    for 1 deg), while the yaw turns the map about the vertical, which the law's miss distance
+    covers and which would spread each point over metres of cells."""
+    P_tilt = np.zeros((3, 3))
+    P_tilt[:2, :2] = P_attitude[:2, :2]
+    J = skew(lever_ned)
+    cov = J @ P_tilt @ J.transpose(0, 2, 1)
+    return 0.5 * (cov + cov.transpose(0, 2, 1))
+
+
 def _concatenate(t_s: float, parts: list[TerrainPoints]) -> TerrainPoints:
     parts = [p for p in parts if len(p)]
     if not parts:
@@ -714,7 +732,7 @@ class Mapper:
                               X_upd[bounding], db.ids[updated[bounding]])
         if np.count_nonzero(newly):
             db.converged[updated[newly]] = True
-            emitted.append(self._emitted_points(nav.t_s, updated[newly]))
+            emitted.append(self._emitted_points(nav.t_s, updated[newly], pose.p_c, P_x[3:6, 3:6]))
 
         # Initialise unmatched, unambiguous measurements (eqs. 13-17) in score order.
         n_matched = len(updated)
@@ -908,7 +926,8 @@ class Mapper:
         cov = J @ self.db.P[slots] @ J.transpose(0, 2, 1)
         return X, 0.5 * (cov + cov.transpose(0, 2, 1))
 
-    def _emitted_points(self, t_s: float, slots: np.ndarray) -> TerrainPoints:
+    def _emitted_points(self, t_s: float, slots: np.ndarray, camera_ned: np.ndarray | None = None,
+                        P_attitude: np.ndarray | None = None) -> TerrainPoints:
         """Converged features as terrain points, with the feature's own covariance ``J P_y J^T``
         scaled by the measured consistency (:class:`ConsistencyScale`).
 
@@ -917,11 +936,18 @@ class Mapper:
         shares with every point of a pass moves the vehicle and the map together and is not an error
         of the map for the law (docs/mapper.md, "Point covariance"). Adding it (0.8 m of vertical
         navigation error on every point of the simulated flights) tripled the points' height sigma
-        against their scatter in the frame, and the law's margin above each cell with it."""
+        against their scatter in the frame, and the law's margin above each cell with it. What the
+        vehicle does not share is the estimate's tilt, which turns the point about ``camera_ned``
+        (the camera's position this step): :func:`tilt_covariance` of the roll and pitch block of
+        ``P_attitude`` (3, 3) is added after the scale (``mapper.point_tilt_covariance``)."""
         if len(slots) == 0:
             return TerrainPoints.empty(t_s)
         X, cov = self._points(slots)
         cov = cov * self.point_covariance_scale
+        if self.cfg.point_tilt_covariance and self.cfg.nav_attitude_correlation_s > 0 and camera_ned is not None \
+                and P_attitude is not None:
+            # (the paper's independent P_x every frame is in the updates already, and so in J P_y J^T)
+            cov = cov + tilt_covariance(X - camera_ned, P_attitude)
         finite = np.isfinite(X).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
         return TerrainPoints(t_s, X[finite], cov[finite], self.db.ids[slots][finite].copy())
 
