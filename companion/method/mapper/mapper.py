@@ -926,8 +926,7 @@ class Mapper:
         cov = J @ self.db.P[slots] @ J.transpose(0, 2, 1)
         return X, 0.5 * (cov + cov.transpose(0, 2, 1))
 
-    def _emitted_points(self, t_s: float, slots: np.ndarray, camera_ned: np.ndarray | None = None,
-                        P_attitude: np.ndarray | None = None) -> TerrainPoints:
+    def _emitted_points(self, t_s: float, slots: np.ndarray, camera_ned: np.ndarray, P_attitude: np.ndarray) -> TerrainPoints:
         """Converged features as terrain points, with the feature's own covariance ``J P_y J^T``
         scaled by the measured consistency (:class:`ConsistencyScale`).
 
@@ -944,8 +943,7 @@ class Mapper:
             return TerrainPoints.empty(t_s)
         X, cov = self._points(slots)
         cov = cov * self.point_covariance_scale
-        if self.cfg.point_tilt_covariance and self.cfg.nav_attitude_correlation_s > 0 and camera_ned is not None \
-                and P_attitude is not None:
+        if self.cfg.point_tilt_covariance and self.cfg.nav_attitude_correlation_s > 0:
             # (the paper's independent P_x every frame is in the updates already, and so in J P_y J^T)
             cov = cov + tilt_covariance(X - camera_ned, P_attitude)
         finite = np.isfinite(X).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
