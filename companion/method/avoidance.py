@@ -557,8 +557,8 @@ def known_horizon(along_m: np.ndarray, cross_m: np.ndarray, ceiling_m: np.ndarra
     and the law already stakes the clearance on that height). The horizon is the entry distance
     (:func:`entry_distance`) of the nearest cell reaching beyond the view (its centre within half a
     diagonal of ``cell_m`` of it, or past it) that neither proves, or of the corridor's end
-    (``lookahead_m - radius_m``) when there is none. Corridor cells (K,): ``along_m`` and ``cross_m`` relative to the vehicle and its
-    direction, ``ceiling_m`` (inf: no line of sight)."""
+    (``lookahead_m - radius_m``) when there is none. Corridor cells (K,): ``along_m`` and
+    ``cross_m`` relative to the vehicle and its direction, ``ceiling_m`` (inf: no line of sight)."""
     beyond = along_m > view_distance_m - cell_m * math.sqrt(0.5)
     with np.errstate(invalid="ignore"):
         proven = ceiling_m <= danger_m

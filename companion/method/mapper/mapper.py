@@ -97,8 +97,7 @@ def tilt_covariance(lever_ned: np.ndarray, P_attitude: np.ndarray) -> np.ndarray
     P_tilt = np.zeros((3, 3))
     P_tilt[:2, :2] = P_attitude[:2, :2]
     J = skew(lever_ned)
-    cov = J @ P_tilt @ J.transpose(0, 2, 1)
-    return 0.5 * (cov + cov.transpose(0, 2, 1))
+    return J @ P_tilt @ J.transpose(0, 2, 1)  # symmetric as P_tilt is
 
 
 def _concatenate(t_s: float, parts: list[TerrainPoints]) -> TerrainPoints:
