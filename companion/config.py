@@ -162,6 +162,7 @@ class MapperConfig:
     track_max_fb_px: float = _f(0.5, "px", 0.0, 100.0, "a tracked point is kept only if tracking it back into the last frame lands within this of where it started (forward-backward check)")
     appearance_patch_px: int = _f(9, "px", 0, 31, "edge of the grey-level patch compared between a feature and a measurement; 0 = Mahalanobis matching only (the paper)")
     appearance_min_ncc: float = _f(0.7, "", -1.0, 1.0, "a pair is only matched if the patches' normalised cross-correlation reaches this")
+    map_depth_prior: bool = _f(True, "", None, None, "a new feature's depth prior is the range to the mapped terrain along its line of sight where the map has one; false = the flat ground at terrain.default_ground_alt_m for every feature (the paper's eq. 16)")
     prior_min_range_m: float = _f(1.0, "m", 0.01, 1e4, "depth prior ranges are clipped to at least this")
     prior_max_range_m: float = _f(200.0, "m", 1.0, 1e6, "range given to rays that miss the ground (rho = 1/this)")
     retire_converged: bool = _f(True, "", None, None, "a converged feature (its point is in the map) is the first to give its slot to a new measurement, so the database keeps room for the terrain ahead; false = the paper's rule alone")

@@ -531,6 +531,28 @@ def test_failing_depth_prior_falls_back_to_flat_ground():
     np.testing.assert_allclose(np.linalg.norm(m3.features().positions_ned_m - m3.db.origin[m3.db.active], axis=1), 7.0)
 
 
+@pytest.mark.parametrize("model", ["inverse_depth", "cartesian"])
+def test_without_the_map_prior_every_feature_starts_on_the_flat_ground(model):
+    """mapper.map_depth_prior false: the map's ray cast is not asked (the paper's eq. 16 for every
+    feature: the range to the ground plane at terrain.default_ground_alt_m), for both models."""
+    asked = []
+
+    def map_prior(origin, rays):
+        asked.append(len(rays))
+        return np.full(len(rays), 7.0)
+
+    cfg = dataclasses.replace(MapperConfig(), parameterisation=model, map_depth_prior=False)
+    m = Mapper(cfg, CAMERA, MOUNT, depth_prior=map_prior)
+    step = m.step_measurements(nav_state(), grid_pixels()[:5])
+    assert step.n_initialised == 5 and step.n_prior_fallback == 0 and asked == []
+    np.testing.assert_allclose(m.features().positions_ned_m[:, 2], 0.0, atol=1e-9)
+    with_map = Mapper(dataclasses.replace(cfg, map_depth_prior=True), CAMERA, MOUNT, depth_prior=map_prior)
+    with_map.step_measurements(nav_state(), grid_pixels()[:5])
+    assert asked == [5]
+    X, origin = with_map.features().positions_ned_m, with_map.db.origin[with_map.db.active]
+    np.testing.assert_allclose(np.linalg.norm(X - origin, axis=1), 7.0)
+
+
 def test_step_undistorts_detected_pixels():
     cam = dataclasses.replace(CAMERA, distortion=np.array([-0.2, 0.05, 0.0, 0.0, 0.0]))
     raw = np.array([[40.0, 30.0], [600.0, 450.0], [320.0, 240.0]])

@@ -15,7 +15,7 @@ import pytest
 
 from companion.config import ConfigError, replace
 from companion.desk import report
-from companion.desk.quality import engine, metrics
+from companion.desk.quality import engine, metrics, suite
 from companion.desk.quality.scenarios import flight_config, parse_set
 from companion.method.control import Controller
 from companion.method.messages import NavState, TerrainPoints
@@ -553,8 +553,8 @@ def test_a_climb_for_an_unmapped_cell_is_judged_by_the_cell_it_stands_in_for():
     source = np.array([[np.nan, np.nan], [52.5, 1.5], [52.5, 1.5], [np.nan, np.nan], [100.5, 0.5], [100.5, 0.5],
                        [np.nan, np.nan]])
     source_h = np.array([np.nan, 3.2, 3.2, np.nan, 9.1, 9.1, np.nan])
-    assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0) == 0
-    assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0, source, source_h) == 1
+    assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0, np.zeros(7)) == 0
+    assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0, np.zeros(7), source, source_h) == 1
 
 
 def test_a_climb_for_an_unmapped_cell_at_its_own_bound_is_judged_by_that_bound():
@@ -570,7 +570,44 @@ def test_a_climb_for_an_unmapped_cell_at_its_own_bound_is_judged_by_that_bound()
     unmapped = np.full(9, np.nan)
     no_source = np.full((9, 2), np.nan)
     law_h = np.array([np.nan, 3.5, 3.5, np.nan, 1.2, np.nan, 9.5, 9.5, np.nan])
-    assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0, no_source, np.full(9, np.nan)) == 0
-    assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0, no_source, np.full(9, np.nan),
+    assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0, np.zeros(9), no_source, np.full(9, np.nan)) == 0
+    assert metrics.false_climbs(climb, engaged, lim, unmapped, flat_or_block, 1.0, np.zeros(9), no_source, np.full(9, np.nan),
                                 law_h) == 1
 
+
+
+def test_a_false_cell_is_judged_in_the_navigation_frame_of_the_climb():
+    """false_climbs: the map is built from the estimate's poses, so with the estimate 1.9 m above
+    the truth a cell mapped 2.3 m over flat true ground is 0.4 m over the ground the vehicle believes
+    in: no false cell; with the estimate 1.9 m below the truth a cell mapped 0.5 m over true ground
+    stands 2.4 m over that ground: a false one. Only the step of the largest climb counts."""
+    def flat(n, e):
+        return np.zeros(np.shape(n))
+
+    engaged = np.array([False, True, True, True, False])
+    climb = np.array([0.0, 0.2, 0.8, 0.3, 0.0])
+    lim = np.tile([50.5, 0.5], (5, 1))
+    high = np.full(5, 2.3)
+    assert metrics.false_climbs(climb, engaged, lim, high, flat, 1.0, np.zeros(5)) == 1
+    assert metrics.false_climbs(climb, engaged, lim, high, flat, 1.0, np.full(5, 1.9)) == 0
+    low = np.full(5, 0.5)
+    assert metrics.false_climbs(climb, engaged, lim, low, flat, 1.0, np.zeros(5)) == 0
+    assert metrics.false_climbs(climb, engaged, lim, low, flat, 1.0, np.full(5, -1.9)) == 1
+    drifting = np.array([0.0, -1.9, 1.9, -1.9, 0.0])  # only the largest climb's step (index 2) judges
+    assert metrics.false_climbs(climb, engaged, lim, high, flat, 1.0, drifting) == 0
+
+
+def test_the_obstacle_height_is_judged_over_the_obstacles_the_second_lap_flew_over():
+    """summarise: an obstacle beside the route (not reached in the second lap; the forward camera
+    may never see it) does not set the table's least obstacle height; one flown over does, on
+    every seed."""
+    def run(seed, over, beside):
+        lap = {"obstacles": [{"name": "over", "reached": True, "mapped_fraction_of_textured": over},
+                             {"name": "beside", "reached": False, "mapped_fraction_of_textured": beside}]}
+        return {"scenario": "s", "parameterisation": "inverse_depth", "seed": seed, "complete": True,
+                "laps": [{}, lap], "map": {"flat": {}, "all": {}}}
+
+    (row,) = suite.summarise([run(1, 1.05, 0.0), run(2, 0.93, 0.02)])
+    assert row["obstacle_height_lap2_fraction"] == 0.93
+    (row,) = suite.summarise([run(1, 1.05, 1.2), run(2, 0.4, 1.1)])
+    assert row["obstacle_height_lap2_fraction"] == 0.4

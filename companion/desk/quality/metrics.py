@@ -116,15 +116,19 @@ def _column(values: np.ndarray, sl: slice) -> np.ndarray | None:
 
 
 def false_climbs(climb: np.ndarray, engaged: np.ndarray, limiting_ne: np.ndarray, limiting_map_h: np.ndarray,
-                 terrain_fn: TerrainFn, cell_m: float, source_ne: np.ndarray | None = None,
+                 terrain_fn: TerrainFn, cell_m: float, frame_offset_m: np.ndarray, source_ne: np.ndarray | None = None,
                  source_map_h: np.ndarray | None = None, limiting_law_h: np.ndarray | None = None) -> int:
     """Climbs caused by false cells: engaged episodes in which, at the step of the largest commanded
     climb, the limiting cell lies on flat true ground (the whole cell within ``FLAT_TOLERANCE_M`` of
-    the datum) and its mapped height is more than ``FALSE_CELL_M`` above that ground. An unmapped
-    limiting cell standing in for a mapped one (``source_ne``, ``source_map_h``: NaN where none) is
-    judged by that mapped cell: the cell the climb was for. An unmapped limiting cell with no such
-    source was held at a bound of its own (a floor from features not yet converged, or its ceiling)
-    and is judged by the height the law took for it (``limiting_law_h``)."""
+    the datum) and its mapped height is more than ``FALSE_CELL_M`` above that ground in the
+    navigation's frame of that step: the true ground plus ``frame_offset_m`` (T,), the estimate's
+    altitude minus the true one. The map is built from the estimate's poses, so a cell that holds the
+    ground where the vehicle believes it is, is a true cell however far the estimate has drifted (the
+    altitude figures judge that drift). An unmapped limiting cell standing in for a mapped one
+    (``source_ne``, ``source_map_h``: NaN where none) is judged by that mapped cell: the cell the
+    climb was for. An unmapped limiting cell with no such source was held at a bound of its own (a
+    floor from features not yet converged, or its ceiling) and is judged by the height the law took
+    for it (``limiting_law_h``)."""
     count = 0
     for a, b in engaged_episodes(engaged):
         k = a + int(np.argmax(climb[a:b + 1]))
@@ -141,7 +145,8 @@ def false_climbs(climb: np.ndarray, engaged: np.ndarray, limiting_ne: np.ndarray
         offs = (np.array([-0.5, 0.0, 0.5]) * cell_m)
         nn, ee = np.meshgrid(n + offs, e + offs)
         truth = terrain_fn(nn.ravel(), ee.ravel())
-        if np.all(np.abs(truth) <= FLAT_TOLERANCE_M) and map_h - float(np.max(truth)) > FALSE_CELL_M:
+        ground = float(np.max(truth)) + float(frame_offset_m[k])
+        if np.all(np.abs(truth) <= FLAT_TOLERANCE_M) and map_h - ground > FALSE_CELL_M:
             count += 1
     return count
 
@@ -227,6 +232,7 @@ def lap_figures(rec, terrain_fn: TerrainFn, obstacles: Sequence[ObstacleTruth], 
             "engaged_flat_fraction": _num(np.mean(rec.engaged[sl][ff])) if ff.any() else None,
             "false_climbs": false_climbs(rec.climb_mps[sl], rec.engaged[sl], rec.limiting_ne_m[sl],
                                          rec.limiting_map_height_m[sl], terrain_fn, cell,
+                                         rec.nav_alt_m[sl] - alt[sl],
                                          *(_column(c, sl) for c in (rec.limiting_source_ne_m, rec.limiting_source_map_height_m,
                                                                     rec.limiting_law_height_m))),
             "speed_flown_mps": _num(_mean_speed(t[sl], ne[sl]), 2),

@@ -141,7 +141,8 @@ def summarise(runs: list[dict]) -> list[dict[str, Any]]:
         eng = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("engaged_flat_fraction"))
         false = _vals([lap for r in group for lap in r.get("laps") or []], lambda lap: lap.get("false_climbs"))
         phantoms = _vals(group, lambda r: r.get("points_in_front"))
-        obst = _vals([o for r in group for o in (_lap(r, 1).get("obstacles") or [])],
+        # judged over the obstacles the second lap flew over: one beside the route may never be in view
+        obst = _vals([o for r in group for o in (_lap(r, 1).get("obstacles") or []) if o.get("reached")],
                      lambda o: o.get("mapped_fraction_of_textured"))
         rows.append({
             "scenario": scenario, "parameterisation": param, "runs": len(group),
@@ -207,8 +208,10 @@ first included, and every obstacle in every lap. The code is companion/quality/m
 - **engaged over flat**: the fraction of those flat-ground samples where the law was engaged
   (an obstacle term demanded more than the nominal-altitude command).
 - **false climbs**: engaged episodes where, at the step of the largest commanded climb, the
-  limiting cell lies on flat true ground and its mapped height is more than 2 m above it. An
-  unmapped limiting cell, standing in at the highest mapped cell within 5 m along track
+  limiting cell lies on flat true ground and its mapped height is more than 2 m above that ground
+  in the navigation's frame of that step (the true ground plus the estimate's altitude error
+  then: the map is built from the estimate's poses, so a cell holding the ground where the vehicle
+  believes it is, is no false cell; the cruise excess judges that error). An unmapped limiting cell, standing in at the highest mapped cell within 5 m along track
   (docs/avoidance.md, "Unmapped cells"), is judged by that mapped cell; one held at its own floor
   or ceiling (no mapped cell to stand in for) by the height the law took for it.
 - **phantom points**: emitted points more than 2 m and more than 5 of their own sigmas nearer the
@@ -229,7 +232,9 @@ first included, and every obstacle in every lap. The code is companion/quality/m
   between places, which no map in that frame can remove).
 - **obstacle height** (lap 2): the 95th percentile of the mapped heights of the footprint cells
   holding at least two points, at the end of the second lap, over the obstacle's textured height
-  (the part a texture-tracking mapper can see). The table gives the least over the obstacles.
+  (the part a texture-tracking mapper can see). The table gives the least over the obstacles the
+  second lap flew over (one beside the route, which the forward camera may never see, is in
+  quality.json's laps, not in the table).
 - **speed flown**: path length over time per lap, mean over the laps (the commanded speed beside it).
 
 The record of a flight starts when the vehicle first reaches its commanded height after take-off

@@ -345,7 +345,7 @@ class Mapper:
         self.cfg = cfg
         self.camera = camera
         self.mount = mount
-        self.depth_prior = depth_prior
+        self.depth_prior = depth_prior if cfg.map_depth_prior else None
         self.default_ground_alt_m = float(default_ground_alt_m)
         self.detector = detector
         self.border_px = int(border_px)
