@@ -186,7 +186,7 @@ DEFINITIONS = """\
 ## What each figure means
 
 Every figure comes from the flight's own record; nothing is excused: every lap counts, the
-first included, and every obstacle in every lap. The code is companion/quality/metrics.py.
+first included, and every obstacle in every lap. The code is companion/desk/quality/metrics.py.
 
 - **first-pass / least clearance fraction**: the least height of the vehicle above the true
   terrain directly below it, over the lap (first lap / any lap), divided by the configured
@@ -307,7 +307,7 @@ def markdown(doc: dict[str, Any], figures: dict[str, str]) -> str:
         f"Made by `{doc['command']}` on {doc['generated'][:10]} ({doc['machine']['cpus']} cores, "
         f"Python {doc['machine']['python']}): {len(doc['runs'])} flights, {opts['laps']} laps each, "
         f"{doc['wall_s']:.0f} s wall. The flights are the service's closed loop in simulated time "
-        "(companion/quality/engine.py); the figures are defined below and in companion/quality/metrics.py.",
+        "(companion/desk/quality/engine.py); the figures are defined below and in companion/desk/quality/metrics.py.",
         "",
     ]
     failed = [r for r in doc["runs"] if not r.get("complete")]
