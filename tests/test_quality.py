@@ -575,7 +575,6 @@ def test_a_climb_for_an_unmapped_cell_at_its_own_bound_is_judged_by_that_bound()
                                 law_h) == 1
 
 
-
 def test_a_false_cell_is_judged_in_the_navigation_frame_of_the_climb():
     """false_climbs: the map is built from the estimate's poses, so with the estimate 1.9 m above
     the truth a cell mapped 2.3 m over flat true ground is 0.4 m over the ground the vehicle believes

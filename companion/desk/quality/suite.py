@@ -211,9 +211,10 @@ first included, and every obstacle in every lap. The code is companion/desk/qual
   limiting cell lies on flat true ground and its mapped height is more than 2 m above that ground
   in the navigation's frame of that step (the true ground plus the estimate's altitude error
   then: the map is built from the estimate's poses, so a cell holding the ground where the vehicle
-  believes it is, is no false cell; the cruise excess judges that error). An unmapped limiting cell, standing in at the highest mapped cell within 5 m along track
-  (docs/avoidance.md, "Unmapped cells"), is judged by that mapped cell; one held at its own floor
-  or ceiling (no mapped cell to stand in for) by the height the law took for it.
+  believes it is, is no false cell; the cruise excess judges that error). An unmapped limiting
+  cell, standing in at the highest mapped cell within 5 m along track (docs/avoidance.md,
+  "Unmapped cells"), is judged by that mapped cell; one held at its own floor or ceiling (no
+  mapped cell to stand in for) by the height the law took for it.
 - **phantom points**: emitted points more than 2 m and more than 5 of their own sigmas nearer the
   camera than the true surface about their line of sight (above the ground, before a face; the
   nearest of the surfaces along the line of sight and lines 0.002-0.01 rad off it, so a point on
