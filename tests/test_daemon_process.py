@@ -428,8 +428,8 @@ def test_a_wall_another_vehicle_mapped_makes_the_law_climb_before_the_camera_see
 
     zport = free_port()
     endpoint = f"tcp/127.0.0.1:{zport}"
-    pilot, sim, daemon = start_flight(tmp_path, FLIGHT_SPEEDUP, zenoh={"enabled": True, "listen": [endpoint], "status_rate_hz": 2.0,
-                                                            "share_from": ["*"]})
+    pilot, sim, daemon = start_flight(tmp_path, FLIGHT_SPEEDUP, zenoh={"enabled": True, "listen": [endpoint],
+                                                                       "status_rate_hz": 2.0, "share_from": ["*"]})
     listener = scout = None
     found = None
     try:
