@@ -182,15 +182,16 @@ def test_camera_end_and_vehicle_restart_keep_the_service_alive(tmp_path):
 FLIGHT_SPEEDUP = 1.5
 
 
-def start_flight(tmp: Path, speedup: float, *daemon_args: str, camera: str = "synthetic", **sections):
-    """A simulated vehicle with an operator's pymavlink link, and the daemon commanding the circuit.
+def start_flight(tmp: Path, *daemon_args: str, camera: str = "synthetic", **sections):
+    """A simulated vehicle with an operator's pymavlink link, and the daemon commanding the circuit,
+    at ``FLIGHT_SPEEDUP``.
 
     camera: "synthetic" (rendered in the daemon from SIM_STATE) or "stream" (rendered by the simulator
     process and sent over TCP, stamped in the autopilot's time: ``companion sim --camera-listen``)."""
     pilot = MavClient.udp_listener()
     extra = ["--camera-listen", "127.0.0.1:0", "--camera-rate", "15"] if camera == "stream" else []
     sim = SimVehicleProcess(["--scenario", "default", "--tcp-listen", "127.0.0.1:0",
-                             "--udp-out", f"127.0.0.1:{pilot.port}", "--speedup", str(speedup), "--origin-delay", "1",
+                             "--udp-out", f"127.0.0.1:{pilot.port}", "--speedup", str(FLIGHT_SPEEDUP), "--origin-delay", "1",
                              *extra], stderr_path=str(tmp / "sim.log")).start()
     if camera == "stream":
         sections["camera"] = {"source": "stream", "stream_address": f"127.0.0.1:{sim.endpoints['camera']}",
@@ -198,7 +199,7 @@ def start_flight(tmp: Path, speedup: float, *daemon_args: str, camera: str = "sy
     cfg = write_config(tmp / "c.yaml", daemon_config(
         tmp, f"tcp:127.0.0.1:{sim.endpoints['tcp']}",
         control={"commanding_enabled": True, "waypoints_ne_m": CIRCUIT, "cruise_speed_mps": 6.0},
-        sim={"scenario": "default", "speedup": speedup}, **sections,
+        sim={"scenario": "default", "speedup": FLIGHT_SPEEDUP}, **sections,
     ))
     daemon = companion("run", "--config", str(cfg), *daemon_args, log=tmp / "daemon.log")
     return pilot, sim, daemon
@@ -227,7 +228,7 @@ def test_end_to_end_flight_maps_the_building_and_climbs_before_it(tmp_path, came
     world = World.load("default")
     building = next(o for o in world.obstacles if o.name == "building")
     zport = free_port()
-    pilot, sim, daemon = start_flight(tmp_path, FLIGHT_SPEEDUP, camera=camera,
+    pilot, sim, daemon = start_flight(tmp_path, camera=camera,
                                       zenoh={"enabled": True, "listen": [f"tcp/127.0.0.1:{zport}"], "status_rate_hz": 2.0})
     listener = None
     try:
@@ -380,7 +381,7 @@ def test_recorded_flight_replays_to_the_same_map_also_after_tum_export(tmp_path)
     `companion replay DIR`, `companion replay DIR --export-tum TUM`, `companion replay TUM`. The TUM
     replay gives the recording's map exactly; the replay agrees with the live map on the cells both have."""
     rec = tmp_path / "rec"
-    pilot, sim, daemon = start_flight(tmp_path, FLIGHT_SPEEDUP, "--record", str(rec))
+    pilot, sim, daemon = start_flight(tmp_path, "--record", str(rec))
     try:
         take_off(pilot)
         pilot.recv("LOCAL_POSITION_NED", 60, lambda m: m.x > 60.0)
@@ -428,8 +429,8 @@ def test_a_wall_another_vehicle_mapped_makes_the_law_climb_before_the_camera_see
 
     zport = free_port()
     endpoint = f"tcp/127.0.0.1:{zport}"
-    pilot, sim, daemon = start_flight(tmp_path, FLIGHT_SPEEDUP, zenoh={"enabled": True, "listen": [endpoint],
-                                                                       "status_rate_hz": 2.0, "share_from": ["*"]})
+    pilot, sim, daemon = start_flight(tmp_path, zenoh={"enabled": True, "listen": [endpoint], "status_rate_hz": 2.0,
+                                                            "share_from": ["*"]})
     listener = scout = None
     found = None
     try:
