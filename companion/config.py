@@ -319,6 +319,7 @@ class SimConfig:
     scenario: str = _f("default", doc="name in config/scenarios/ or a path to a YAML scenario")
     seed: int = _f(1, "", 0, 2**31 - 1)
     speedup: float = _f(1.0, "", 0.1, 1000.0, "simulated seconds per wall-clock second")
+    clock_file: str = _f("", doc="lockstep: the clock file of `companion sim --clock-file`; the service reads time from it and holds it while its mapper is behind (docs/sim.md); empty: its own clock at sim.speedup")
     # --- world renderer and synthetic camera (drivers/sim/renderer.py, docs/sim.md) ---
     image_noise_sigma: float = _f(2.0, "gray", 0.0, 50.0, "synthetic camera: additive Gaussian sensor noise")
     image_blur_sigma_px: float = _f(0.0, "px", 0.0, 10.0, "synthetic camera: Gaussian optical blur (0 = none)")

@@ -49,9 +49,10 @@ from companion.method.terrain.codec import TilePublications
 from companion.method.terrain.grid import TerrainGrid
 from companion.method.terrain.persistence import count_known_cells, load_latest, snapshot_bytes, write_snapshot_bytes
 from companion.service import realtime
+from companion.service.lockstep import MAPPER_LEAD_PERIODS, FrameLockstep
 from companion.service.mapper_process import MapperProcess
 from companion.service.sdnotify import SystemdNotifier
-from drivers.clock import Clock
+from drivers.clock import HELD_POLL_WALL_S, Clock, SharedClock
 
 log = logging.getLogger("companion")
 
@@ -120,13 +121,17 @@ class FrameQueue:
         self.idle = threading.Event()
         self.idle.set()
 
-    def put(self, frame: Frame) -> None:
+    def put(self, frame: Frame) -> Frame | None:
+        """Queue ``frame``; returns the oldest frame, dropped to make room (None: nothing dropped)."""
         with self._cond:
+            dropped = None
             if len(self._frames) == self._frames.maxlen:
                 self.dropped += 1
+                dropped = self._frames[0]
             self._frames.append(frame)
             self.idle.clear()
             self._cond.notify()
+            return dropped
 
     def done(self) -> None:
         """The worker finished a frame: idle again if none is waiting."""
@@ -144,6 +149,16 @@ class FrameQueue:
         with self._cond:
             self.closed = True
             self._cond.notify_all()
+
+
+def clock_from_config(cfg: CompanionConfig) -> Clock:
+    """The service's clock: its own at ``sim.speedup``, or the simulator's shared one (``sim.clock_file``)."""
+    if not cfg.sim.clock_file:
+        return Clock(cfg.sim.speedup)
+    try:
+        return SharedClock.open(cfg.sim.clock_file)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"'sim.clock_file': cannot open the simulator's clock: {exc}") from None
 
 
 def _finite_or_none(x: float, digits: int = 3) -> float | None:
@@ -179,7 +194,7 @@ class Daemon:
             # The synthetic camera renders at the simulator's true pose, which arrives as SIM_STATE.
             cfg = replace_config(cfg, **{"link.request_sim_state": True})
         self.cfg = cfg
-        self.clock = clock or Clock(cfg.sim.speedup)
+        self.clock = clock or clock_from_config(cfg)
         self.link = AutopilotLink(cfg, self.clock)
         self.camera_model, self.mount = camera_from_config(cfg.camera)
         self.snapshot_path = Path(cfg.persistence.directory) / SNAPSHOT_NAME
@@ -211,6 +226,13 @@ class Daemon:
             self.flow = FlowRanger(cfg.mapper, self.camera_model, self.mount)
         self.flow_frames = FrameQueue(maxlen=FLOW_QUEUE_FRAMES)
         self._flow_thread: threading.Thread | None = None
+        # Lockstep with the simulator (sim.clock_file): time waits while the workers are behind.
+        self.lockstep: FrameLockstep | None = None
+        if isinstance(self.clock, SharedClock):
+            leads = {"mapper": MAPPER_LEAD_PERIODS}
+            if self.flow is not None:
+                leads["flow"] = FLOW_QUEUE_FRAMES - MAPPER_LEAD_PERIODS  # it lags as far as its queue holds, never beyond
+            self.lockstep = FrameLockstep(self.clock, 1.0 / cfg.camera.rate_hz, leads)
         # control.realtime_priority: what the loop's thread got ({priority, active, reason}; None: not asked)
         self.realtime_state: dict | None = None
         self._snapshot_executor: concurrent.futures.ThreadPoolExecutor | None = None
@@ -413,11 +435,18 @@ class Daemon:
                 lost_since = None
             self.camera_state, self.camera_error = "ok", ""
             self.frames_in += 1
-            self.frames.put(frame)
+            if self.lockstep is not None:
+                self.lockstep.captured(frame)
+            self._finished_unmapped(self.frames.put(frame), "mapper")
             if self.flow is not None:
-                self.flow_frames.put(frame)
+                self._finished_unmapped(self.flow_frames.put(frame), "flow")
             if self.recorder is not None:
                 self.recorder.submit(frame)
+
+    def _finished_unmapped(self, dropped: Frame | None, worker: str) -> None:
+        """A frame a full queue dropped is done with, for the lockstep (a hold must not wait for it)."""
+        if dropped is not None and self.lockstep is not None:
+            self.lockstep.finished(dropped, worker)
 
     def _mapper_worker(self) -> None:
         """Worker thread: frames -> mapper -> terrain grid. One bad frame never stops the others."""
@@ -438,6 +467,8 @@ class Daemon:
                 log.exception("mapper: frame %d failed; continuing with the next frame", frame.sequence)
             finally:
                 self.frames.done()
+                if self.lockstep is not None:
+                    self.lockstep.finished(frame, "mapper")
 
     def _flow_worker(self) -> None:
         """Worker thread: frames -> dense flow -> floors and flat surfaces in the terrain grid
@@ -462,6 +493,9 @@ class Daemon:
             except Exception:  # noqa: BLE001
                 self.flow_errors += 1
                 log.exception("flow: frame %d failed; continuing with the next frame", frame.sequence)
+            finally:
+                if self.lockstep is not None:
+                    self.lockstep.finished(frame, "flow")
 
     def _flow_frame(self, frame: Frame) -> None:
         lookup = self.link.nav_buffer.lookup(frame.t_s)
@@ -529,6 +563,8 @@ class Daemon:
         next_tick = self.clock.now() + period
         while not self._stop.is_set():
             timeout = self.clock.wall_seconds(next_tick - self.clock.now())
+            if self.clock.held:
+                timeout = min(timeout, HELD_POLL_WALL_S)  # the tick comes when the holder lets time go on
             map_changed = False
             if timeout > 0:
                 try:
@@ -538,6 +574,8 @@ class Daemon:
                     pass
             self._map_updated.clear()
             now = self.clock.now()
+            if not map_changed and now < next_tick:
+                continue  # the wait ended before the tick in clock time: a held clock (sim.clock_file)
             if not map_changed or now >= next_tick:
                 self.control_jitter_ms.add(self.clock.wall_seconds(now - next_tick) * 1e3)
                 next_tick += period
@@ -709,6 +747,8 @@ class Daemon:
                 "state": self.camera_state, "error": self.camera_error, "frames": self.frames_in,
                 "queue_dropped": self.frames.dropped,
                 "stats": camera_stats.as_dict() if hasattr(camera_stats, "as_dict") else None,
+                # sim.clock_file: frames outstanding, frames time waited for (None: no lockstep)
+                "lockstep": None if self.lockstep is None else self.lockstep.status(),
             },
             "mapper": {
                 "parameterisation": self.cfg.mapper.parameterisation,
@@ -834,6 +874,9 @@ class Daemon:
         log.info("companion running: link %s, camera %s, mapper %s, commanding %s",
                  self.cfg.link.connection, self.cfg.camera.source, self.cfg.mapper.parameterisation,
                  "enabled" if self.cfg.control.commanding_enabled else "off (advisory)")
+        if self.lockstep is not None:
+            log.info("lockstep: simulated time from %s (x%g at most), held while the mapper or the dense flow is "
+                     "behind (docs/sim.md)", self.lockstep.clock.path, self.clock.speedup)
         view_m, view_mps = level_flight_view_limit(self.cfg)
         if self.cfg.avoidance.view_speed_limit and view_mps < self.cfg.control.cruise_speed_mps:
             log.warning("view speed limit: with camera.mount_pitch_deg %g the camera sees terrain that would need a "
@@ -877,6 +920,8 @@ class Daemon:
 
     async def _shutdown(self) -> None:
         self.notifier.stopping()
+        if self.lockstep is not None:
+            self.lockstep.close()  # the simulation goes on without the service
         self.frames.close()
         self.flow_frames.close()
         if self._mapper_thread is not None:

@@ -15,7 +15,9 @@ out at their requested rates in simulated time; ``time_boot_ms`` / ``time_usec``
 time since boot. If the machine cannot keep up, the simulation slows down (simulated time stays
 consistent, it just runs slower than requested) and the slips are counted and logged. Received
 messages are applied between physics steps, so given a seed the physics is deterministic for the
-same commands at the same simulated times.
+same commands at the same simulated times. With ``--clock-file`` the clock is a
+:class:`drivers.clock.SharedClock` the service (``sim.clock_file``) reads and holds while its
+mapper is behind: lockstep, so a slow host slows the flight down instead of costing frames.
 
 SIGTERM / SIGINT end it cleanly (exit status 0).
 """
@@ -35,7 +37,7 @@ import yaml
 
 from companion.config import CompanionConfig, ConfigError, config_from_dict, load_config
 from drivers.addresses import parse_host_port
-from drivers.clock import Clock
+from drivers.clock import Clock, SharedClock
 from drivers.sim.autopilot import Home, SimAutopilot
 from drivers.sim.mavlink_endpoint import Link, TcpListenEndpoint, UdpInEndpoint, UdpOutEndpoint
 
@@ -85,12 +87,12 @@ class VehicleProcess:
     """Owns the autopilot, its links and the pacing; ``run`` until ``stop`` is set."""
 
     def __init__(self, autopilot: SimAutopilot, endpoints: list, speedup: float, duration_s: float | None = None,
-                 camera=None):
+                 camera=None, clock: Clock | None = None):
         self.ap = autopilot
         self.camera = camera  # drivers.sim.camera_server.CameraServer or None
         self.endpoints = endpoints
         self.links = {e.link.name: e.link for e in endpoints}
-        self.clock = Clock(speedup)
+        self.clock = clock or Clock(speedup)  # a SharedClock with --clock-file (lockstep with the service)
         self.duration_s = duration_s
         self.offset_s = 0.0     # simulated seconds the simulation has fallen behind the clock
         self.slips = 0
@@ -168,6 +170,13 @@ class VehicleProcess:
 
 
 async def _run(args, sim, home: Home) -> int:
+    clock = None
+    if args.clock_file:
+        try:
+            clock = SharedClock.create(args.clock_file, sim.speedup)
+        except OSError as exc:
+            print(f"companion sim: --clock-file: cannot create {args.clock_file}: {exc.strerror or exc}", file=sys.stderr)
+            return 1
     ap = make_autopilot(sim, home, args.sysid)
     endpoints = []
     for i, spec in enumerate(args.udp_out or []):
@@ -213,7 +222,7 @@ async def _run(args, sim, home: Home) -> int:
         print(e.describe(), flush=True)
     for line in endpoints_lines:
         print(line, flush=True)
-    process = VehicleProcess(ap, endpoints, sim.speedup, args.duration, camera)
+    process = VehicleProcess(ap, endpoints, sim.speedup, args.duration, camera, clock)
     log.info("%s vehicle sysid %d, speed-up %.1f, seed %d, origin after %.1f s, home %.6f %.6f %.1f m",
              ap.FLAVOUR, args.sysid, sim.speedup, ap.seed, sim.origin_delay_s, home.lat_deg, home.lon_deg, home.alt_m)
     wall0 = time.monotonic()
@@ -256,6 +265,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--home", metavar="LAT,LON,ALT",
                    help="override the scenario's home (deg, deg, m AMSL); write --home=-35.36,149.17,584 for a negative latitude")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any sim.* key, e.g. nav_vel_sigma_mps=0.5")
+    p.add_argument("--clock-file", metavar="FILE",
+                   help="lockstep: create a shared clock here for the service (sim.clock_file), which holds it while its "
+                        "mapper is behind (docs/sim.md)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after this many simulated seconds")
     p.add_argument("--camera-listen", metavar="HOST:PORT",
                    help="serve the vehicle's camera as a frame stream (camera.source: stream; port 0 = ephemeral)")

@@ -28,6 +28,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--laps", type=int, default=3, help="laps of the circuit per run (default 3, as in the paper)")
     p.add_argument("--speedup", type=float, default=DEFAULT_SPEEDUP,
                    help=f"simulated seconds per wall second for the vehicle and the service (default {DEFAULT_SPEEDUP:g})")
+    p.add_argument("--no-lockstep", action="store_true",
+                   help="pace the flight by the wall clock alone: frames the service cannot map in time are dropped "
+                        "(default: the service holds the simulation's clock while its mapper is behind, docs/sim.md)")
     p.add_argument("--output", default="demo-report", help="report folder (default ./demo-report)")
     p.add_argument("--seed", type=int, default=1, help="random seed of the simulated navigation error, wind and camera noise")
     p.add_argument("--no-avoid", action="store_true",

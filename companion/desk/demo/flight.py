@@ -25,6 +25,7 @@ from companion.desk.demo.progress import Progress, progress_line
 
 LAP_RADIUS_M = 10.0            # a waypoint is visited when the truth passes this close
 STARTUP_WALL_S = 60.0          # processes up, link connected, camera running
+STALL_WALL_S = 30.0            # simulated time not moving this long ends the run (a stopped simulator or a held clock)
 STOP_WALL_S = 10.0             # SIGTERM to exit
 
 
@@ -67,6 +68,8 @@ def daemon_config(world, opts, parameterisation: str, tcp_port: int, zenoh_port:
     data["zenoh"] = {"mode": "peer", "listen": [f"tcp/127.0.0.1:{zenoh_port}"], "vehicle_name": "demo"}
     data["persistence"] = {"directory": str(map_dir)}
     data["sim"]["speedup"] = float(opts.speedup)
+    if not getattr(opts, "no_lockstep", False):
+        data["sim"]["clock_file"] = str(map_dir.parent / "clock")  # created by the run's simulator
     if opts.no_avoid:
         data["avoidance"]["enabled"] = False
     service = ((f"scenario {world.name!r} service", world.service),) if world.service else ()
@@ -126,6 +129,7 @@ def run_closed_loop(parameterisation: str, opts, world, obstacle, run_dir: Path,
         sim = SimVehicleProcess([
             "--scenario", opts.scenario, "--tcp-listen", "127.0.0.1:0", "--udp-out", f"127.0.0.1:{pilot.port}",
             "--speedup", f"{opts.speedup:g}", "--origin-delay", "2", "--seed", str(opts.seed),
+            *(() if getattr(opts, "no_lockstep", False) else ("--clock-file", str(run_dir / "clock"))),
         ], stderr_path=str(run_dir / "sim.log")).start()
         zenoh_port = free_tcp_port()
         cfg = daemon_config(world, opts, parameterisation, sim.endpoints["tcp"], zenoh_port, map_dir)
@@ -199,10 +203,13 @@ def fly(record: RunRecord, opts, world, obstacle, pilot: Pilot, station, daemon,
     """The main loop of a run: record truth, follow the map, cut laps; (complete, problem). ``feed``
     (:class:`drivers.ground_web.LiveFeed`) gets the ground station's changes for the browsers."""
     counter = report.LapCounter(world.waypoints_ne_m, LAP_RADIUS_M)
-    # A generous bound: the laps at the configured speed, times three, plus a minute.
+    # A generous bound: the laps at the configured speed, times three, plus a minute; in lockstep
+    # simulated time may run slower than the speed-up (down to real time within the bound).
     circuit_m = float(report.path_length(np.vstack([world.waypoints_ne_m, world.waypoints_ne_m[:1]]))[-1])
-    budget_wall_s = 3.0 * (opts.laps * circuit_m / world.circuit.speed_mps + 60.0) / opts.speedup + 60.0
+    pace = opts.speedup if getattr(opts, "no_lockstep", False) else min(opts.speedup, 1.0)
+    budget_wall_s = 3.0 * (opts.laps * circuit_m / world.circuit.speed_mps + 60.0) / pace + 60.0
     deadline = time.monotonic() + budget_wall_s
+    sim_t_seen, sim_t_wall = -1.0, time.monotonic()  # simulated time last seen moving, and when
     seen, tiles_rx = 0, -1
     last_engaged_t, engaged = None, False
     footprint_lo = obstacle.footprint_ne_m.min(axis=0) - 2.0
@@ -250,6 +257,11 @@ def fly(record: RunRecord, opts, world, obstacle, pilot: Pilot, station, daemon,
         if time.monotonic() > deadline:
             return False, (f"{counter.laps} of {opts.laps} laps after {budget_wall_s:.0f} s (wall): "
                            "the vehicle did not come round the circuit")
+        if pilot.sim_time_s != sim_t_seen:
+            sim_t_seen, sim_t_wall = pilot.sim_time_s, time.monotonic()
+        elif time.monotonic() - sim_t_wall > STALL_WALL_S:
+            return False, (f"simulated time stood still at {sim_t_seen:.1f} s for {STALL_WALL_S:g} s (wall): "
+                           "the simulator stopped, or the service held its clock (see daemon.log and sim.log)")
         time.sleep(0.02)
     if engaged and last_engaged_t is not None:
         record.engaged_time_s += pilot.sim_time_s - last_engaged_t

@@ -93,6 +93,7 @@ def run_metrics(rec: RunRecord, world, obstacle, clearance_m: float) -> dict[str
         "frames": cam.get("frames"),
         "frames_mapped": mapper.get("frames_mapped"),
         "frames_dropped": cam.get("queue_dropped"),
+        "lockstep": cam.get("lockstep"),  # frames simulated time waited for (None: paced by the wall clock)
         "points_converged": mapper.get("points_converged"),
         "map_tiles": (st.get("map") or {}).get("tiles"),
         "service": {
@@ -122,7 +123,7 @@ def write_trajectory(rec: RunRecord, path: Path) -> Path:
     return path
 
 
-OPTION_KEYS = ("scenario", "laps", "speedup", "seed", "no_avoid", "camera_rate", "config", "set")
+OPTION_KEYS = ("scenario", "laps", "speedup", "no_lockstep", "seed", "no_avoid", "camera_rate", "config", "set")
 
 
 def save_record(rec: RunRecord, path: Path, opts=None) -> Path:
@@ -204,6 +205,7 @@ def build_metrics(records: dict[str, RunRecord], world, obstacle, opts, wall_s: 
         "scenario": opts.scenario,
         "laps_requested": opts.laps,
         "speedup": opts.speedup,
+        "lockstep": not getattr(opts, "no_lockstep", False),
         "camera_rate_hz": opts.camera_rate,
         "seed": opts.seed,
         "avoidance_enabled": not opts.no_avoid,
