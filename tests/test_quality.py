@@ -596,6 +596,39 @@ def test_a_false_cell_is_judged_in_the_navigation_frame_of_the_climb():
     assert metrics.false_climbs(climb, engaged, lim, high, flat, 1.0, drifting) == 0
 
 
+def test_a_cell_beside_a_face_is_judged_as_the_map_figures_judge_it():
+    """false_climbs and flat_cells look at the same neighbourhood (the cell and one cell around it):
+    with a 9 m face from north 99.3 m, a 5 m limiting cell centred at 98.5 m (one cell from the
+    face) is no false climb, one at 97.5 m is; the map's flat cells say the same of those cells."""
+    def face(n, e):
+        return np.where(np.asarray(n, float) >= 99.3, 9.0, 0.0) + 0.0 * np.asarray(e, float)
+
+    engaged = np.array([False, True, True, False])
+    climb = np.array([0.0, 1.0, 2.0, 0.0])
+    for north, expected in ((98.5, 0), (97.5, 1)):
+        lim = np.tile([north, 0.5], (4, 1))
+        assert metrics.false_climbs(climb, engaged, lim, np.full(4, 5.0), face, 1.0, np.zeros(4)) == expected, north
+    raster = report.MapRaster(np.zeros((4, 1)), np.ones((4, 1), np.int64), 96.0, 0.0, 1.0)  # centres 96.5 .. 99.5
+    assert metrics.flat_cells(raster, face).ravel().tolist() == [True, True, False, False]
+
+
+def test_a_cell_is_judged_against_the_highest_terrain_over_it():
+    """map_figures: a cell a face crosses off its centre claims the face's top (the fusion keeps a
+    cell's top), so mapped at 9 m it is no error, mapped at the ground it is 9 m low; flat cells are
+    judged against the ground at their centre as before."""
+    def face(n, e):
+        return np.where(np.asarray(n, float) >= 99.3, 9.0, 0.0) + 0.0 * np.asarray(e, float)
+
+    raster = report.MapRaster(np.array([[0.1], [0.0], [9.0], [9.2]]), np.ones((4, 1), np.int64), 97.0, 0.0, 1.0)
+    assert report.cell_top_truth(raster, face).ravel().tolist() == [0.0, 0.0, 9.0, 9.0]  # 99.0-100.0 holds the face
+    fig = metrics.map_figures(raster, face, [], np.zeros((0, 2), np.int64))
+    assert fig["all"]["cells"] == 4 and fig["all"]["max_abs_m"] == pytest.approx(0.2)
+    assert fig["flat"]["cells"] == 1 and fig["flat"]["bias_m"] == pytest.approx(0.1)  # 97.5 only: 98.5 is beside the face
+    low = report.MapRaster(np.array([[0.1], [0.0], [0.0], [9.2]]), np.ones((4, 1), np.int64), 97.0, 0.0, 1.0)
+    assert metrics.map_figures(low, face, [], np.zeros((0, 2), np.int64))["all"]["max_abs_m"] == pytest.approx(9.0)
+    assert report.map_error(low, face).max_abs_m == pytest.approx(9.0) and report.map_error(raster, face).max_abs_m == pytest.approx(0.2)
+
+
 def test_the_obstacle_height_is_judged_over_the_obstacles_the_second_lap_flew_over():
     """summarise: an obstacle beside the route (not reached in the second lap; the forward camera
     may never see it) does not set the table's least obstacle height; one flown over does, on

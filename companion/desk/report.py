@@ -380,16 +380,34 @@ class MapError:
     over_3m: int = 0
 
 
+# Where a cell's true top is looked for: a 5 x 5 lattice over the cell (fractions of the cell from its
+# centre), so a face through the cell counts wherever it stands in it, not only across the centre.
+CELL_TOP_OFFSETS = (-0.4, -0.2, 0.0, 0.2, 0.4)
+
+
+def cell_top_truth(raster: MapRaster, terrain_fn: TerrainFn, cells: np.ndarray | None = None) -> np.ndarray:
+    """The highest true terrain over each cell (H, W) (or over the cells of the (H, W) bool mask
+    ``cells``, (K,)): what a cell of the map claims (the fusion keeps a cell's top, docs/terrain.md),
+    so the truth a mapped cell is judged against. On flat ground it is the terrain at the centre;
+    on a cell a wall's face crosses, the wall's top."""
+    n, e = raster.cell_centres()
+    nn, ee = np.broadcast_arrays(n, e)
+    if cells is not None:
+        nn, ee = nn[cells], ee[cells]
+    top = np.full(nn.shape, -np.inf)
+    for dn in CELL_TOP_OFFSETS:
+        for de in CELL_TOP_OFFSETS:
+            top = np.maximum(top, np.asarray(terrain_fn(nn + dn * raster.cell_m, ee + de * raster.cell_m), float))
+    return top
+
+
 def map_error(raster: MapRaster, terrain_fn: TerrainFn, min_count: int = 1) -> MapError:
-    """Error of every observed cell (evidence count >= ``min_count``) against ``terrain_fn`` at the
-    cell centre (the grid the scenario's ``true_height_grid`` uses)."""
+    """Error of every observed cell (evidence count >= ``min_count``) against the highest true
+    terrain over the cell (:func:`cell_top_truth`)."""
     observed = (raster.count >= min_count) & np.isfinite(raster.height)
     if not observed.any():
         return MapError(math.nan, math.nan, math.nan, math.nan, math.nan, 0)
-    n, e = raster.cell_centres()
-    nn, ee = np.broadcast_arrays(n, e)
-    truth = np.asarray(terrain_fn(nn[observed], ee[observed]), float)
-    err = raster.height[observed] - truth
+    err = raster.height[observed] - cell_top_truth(raster, terrain_fn, observed)
     a = np.abs(err)
     return MapError(float(np.sqrt(np.mean(err * err))), float(np.mean(err)), float(np.mean(a <= 1.0)),
                     float(np.quantile(a, 0.95)), float(a.max()), int(err.size), int(np.count_nonzero(err > 3.0)))

@@ -199,7 +199,7 @@ def build_metrics(records: dict[str, RunRecord], world, obstacle, opts, wall_s: 
             "warning_s": "the lap's crossing minus the first detection: at least warning_needed_s (the law's time to climb "
                          "from the nominal altitude to textured height + clearance) lets the law climb smoothly; every lap is "
                          "judged for clearance whatever its warning",
-            "map_rmse_m": "RMSE of every observed cell of the final map against the scenario's true heights at cell centres",
+            "map_rmse_m": "RMSE of every observed cell of the final map against the highest true terrain over the cell",
             "laps": f"cut where the true trajectory comes back within {LAP_RADIUS_M:g} m of the first waypoint after the others",
         },
         "scenario": opts.scenario,

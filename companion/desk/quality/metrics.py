@@ -25,6 +25,10 @@ from companion.config import AvoidanceConfig
 TerrainFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 FLAT_TOLERANCE_M = 0.25   # terrain within this of the ground datum counts as flat ground
+# Where flat ground is looked for about a cell (cells from its centre, each way): the cell and one
+# cell around it, so that a cell beside a face is not flat ground, for the map's figures and the
+# false climbs alike.
+FLAT_NEIGHBOURHOOD_CELLS = (-1.0, -0.5, 0.0, 0.5, 1.0)
 FALSE_CELL_M = 2.0        # a cell this far above flat true ground is false (the false-climb rule)
 RETURN_TIME_CONSTANTS = 3.0  # the return to the nominal altitude counts as done after this many time constants
 
@@ -119,8 +123,8 @@ def false_climbs(climb: np.ndarray, engaged: np.ndarray, limiting_ne: np.ndarray
                  terrain_fn: TerrainFn, cell_m: float, frame_offset_m: np.ndarray, source_ne: np.ndarray | None = None,
                  source_map_h: np.ndarray | None = None, limiting_law_h: np.ndarray | None = None) -> int:
     """Climbs caused by false cells: engaged episodes in which, at the step of the largest commanded
-    climb, the limiting cell lies on flat true ground (the whole cell within ``FLAT_TOLERANCE_M`` of
-    the datum) and its mapped height is more than ``FALSE_CELL_M`` above that ground in the
+    climb, the limiting cell lies on flat true ground (the cell and one cell around it within
+    ``FLAT_TOLERANCE_M`` of the datum, as :func:`flat_cells` judges the map) and its mapped height is more than ``FALSE_CELL_M`` above that ground in the
     navigation's frame of that step: the true ground plus ``frame_offset_m`` (T,), the estimate's
     altitude minus the true one. The map is built from the estimate's poses, so a cell that holds the
     ground where the vehicle believes it is, is a true cell however far the estimate has drifted (the
@@ -142,7 +146,7 @@ def false_climbs(climb: np.ndarray, engaged: np.ndarray, limiting_ne: np.ndarray
                 map_h = limiting_law_h[k]
         if not (math.isfinite(n) and math.isfinite(e) and math.isfinite(map_h)):
             continue
-        offs = (np.array([-0.5, 0.0, 0.5]) * cell_m)
+        offs = np.asarray(FLAT_NEIGHBOURHOOD_CELLS) * cell_m
         nn, ee = np.meshgrid(n + offs, e + offs)
         truth = terrain_fn(nn.ravel(), ee.ravel())
         ground = float(np.max(truth)) + float(frame_offset_m[k])
@@ -262,25 +266,16 @@ def law_speed(rec) -> float:
 # --------------------------------------------------------------------------------------------
 
 
-def _cell_errors(raster: report.MapRaster, terrain_fn: TerrainFn, mask_fn=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Known cells of ``raster``: (error (K,), row (K,), col (K,)), error = mapped - true at the centre."""
-    n, e = raster.cell_centres()
-    nn, ee = np.broadcast_arrays(n, e)
-    known = raster.count > 0
-    err = raster.height[known] - terrain_fn(nn[known], ee[known])
-    rows, cols = np.nonzero(known)
-    return err, rows, cols
-
-
 def flat_cells(raster: report.MapRaster, terrain_fn: TerrainFn) -> np.ndarray:
     """(H, W) bool: cells whose true terrain is flat ground over the cell and one cell around it
-    (sampled at the centre, the corners and the neighbours' centres), so wall edges are not flat."""
+    (sampled at ``FLAT_NEIGHBOURHOOD_CELLS`` about the centre: the centre, the corners and the
+    neighbours' centres), so wall edges are not flat."""
     n, e = raster.cell_centres()
     nn, ee = np.broadcast_arrays(n, e)
     flat = np.ones(raster.shape, bool)
     c = raster.cell_m
-    for dn in (-1.0, -0.5, 0.0, 0.5, 1.0):
-        for de in (-1.0, -0.5, 0.0, 0.5, 1.0):
+    for dn in FLAT_NEIGHBOURHOOD_CELLS:
+        for de in FLAT_NEIGHBOURHOOD_CELLS:
             flat &= np.abs(terrain_fn(nn + dn * c, ee + de * c)) <= FLAT_TOLERANCE_M
     return flat
 
@@ -311,8 +306,8 @@ def map_figures(raster: report.MapRaster, terrain_fn: TerrainFn, obstacles: Sequ
     known = raster.count > 0
     n, e = raster.cell_centres()
     nn, ee = np.broadcast_arrays(n, e)
-    truth = terrain_fn(nn, ee)
-    err = np.where(known, raster.height - truth - frame_m, np.nan)
+    err = np.full(raster.shape, np.nan)
+    err[known] = raster.height[known] - report.cell_top_truth(raster, terrain_fn, known) - frame_m
     out["all"] = error_stats(err[known])
     flat = flat_cells(raster, terrain_fn)
     out["flat"] = error_stats(err[known & flat])

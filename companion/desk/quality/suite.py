@@ -208,7 +208,8 @@ first included, and every obstacle in every lap. The code is companion/desk/qual
 - **engaged over flat**: the fraction of those flat-ground samples where the law was engaged
   (an obstacle term demanded more than the nominal-altitude command).
 - **false climbs**: engaged episodes where, at the step of the largest commanded climb, the
-  limiting cell lies on flat true ground and its mapped height is more than 2 m above that ground
+  limiting cell lies on flat true ground (the cell and one cell around it, as for the map's flat
+  cells below, so a cell beside a face is not one) and its mapped height is more than 2 m above that ground
   in the navigation's frame of that step (the true ground plus the estimate's altitude error
   then: the map is built from the estimate's poses, so a cell holding the ground where the vehicle
   believes it is, is no false cell; the cruise excess judges that error). An unmapped limiting
@@ -223,8 +224,10 @@ first included, and every obstacle in every lap. The code is companion/desk/qual
   `points_scored`, `points_in_front`, `points_behind`).
 - **map, flat**: cells whose true terrain is flat over the cell and one cell around it: bias
   (mean of mapped - true), RMSE, fraction within 1 m, and coverage (of the flat cells a camera ray
-  met, the fraction the map holds). **map, all**: RMSE over every mapped cell. Each against the
-  truth, and in the navigation's frame: against the truth raised by the navigation's vertical
+  met, the fraction the map holds). **map, all**: RMSE over every mapped cell. Each cell is judged
+  against the highest true terrain over it (sampled on a 5 x 5 lattice), what a cell claims (the
+  fusion keeps a cell's top, docs/terrain.md): on flat ground the terrain at its centre, on a cell
+  a face crosses the top of the face. Each against the truth, and in the navigation's frame: against the truth raised by the navigation's vertical
   error at the end of the flight, when the map was taken (quality.json per run: `map` and
   `map_nav_frame`, `nav_frame_error_end_m`). The map lives in the autopilot's frame and follows it
   (docs/terrain.md, "The navigation's frame"), as the vehicle does: the first is the map a ground
