@@ -135,10 +135,13 @@ class SharedClock(Clock):
     def hold_at(self, t_hold: float) -> None:
         """Let time run up to ``t_hold`` clock seconds and wait there (``math.inf``: release; a hold
         before now holds at now). One writer: the process that holds (the service)."""
-        now = self.now()
+        wall = time.monotonic()
+        t0, wall0, hold = self._read()
+        now = min(t0 + (wall - wall0) * self.speedup, hold)  # the new anchor: time at the same wall instant
         seq = _LAYOUT.unpack_from(self._map, _HEADER)[0]
-        _LAYOUT.pack_into(self._map, _HEADER, seq + 1, now, time.monotonic(), max(t_hold, now), self.speedup)
-        _LAYOUT.pack_into(self._map, _HEADER, seq + 2, now, time.monotonic(), max(t_hold, now), self.speedup)
+        fields = (now, wall, max(t_hold, now), self.speedup)
+        _LAYOUT.pack_into(self._map, _HEADER, seq + 1, *fields)  # odd: readers retry
+        _LAYOUT.pack_into(self._map, _HEADER, seq + 2, *fields)
 
     def release(self) -> None:
         """Time runs free again (the holder stops)."""
