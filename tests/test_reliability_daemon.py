@@ -442,14 +442,16 @@ def test_sigkill_mid_flight_loses_at_most_one_snapshot_interval_of_map(tmp_path)
         take_off(pilot)
         t_air = time.monotonic()
         # Map for a while: past two snapshots of a growing map, and long enough that the statuses
-        # recorded reach back further than the bound below looks (one interval and the slack before
-        # the kill): a map that grows fast meets the first two conditions within a second.
+        # of a map already holding cells reach back further than the bound below looks (one
+        # interval and the slack before the kill): a map that grows fast meets the first two
+        # conditions within a second, and the first statuses after take-off hold no cell yet.
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             s = listener.wait_status(lambda s: True, 10)
             series.append((s["time_unix_s"], s["map"]["cells"]))
-            if (s["snapshots"]["written"] >= 2 and s["map"]["cells"] > 200
-                    and s["time_unix_s"] - series[0][0] > 2.0 * (interval_s + slack_s) / speedup):
+            first_mapped = next((t for t, c in series if c > 0), None)
+            if (s["snapshots"]["written"] >= 2 and s["map"]["cells"] > 200 and first_mapped is not None
+                    and s["time_unix_s"] - first_mapped > 2.0 * (interval_s + slack_s) / speedup):
                 break
         print(f"\ntake-off {t_air - t0:.1f} s, mapping until the kill {time.monotonic() - t_air:.1f} s (wall)")
         time.sleep(random.Random(3).uniform(0.0, interval_s / speedup))  # anywhere in the interval
