@@ -125,14 +125,14 @@ def false_climbs(climb: np.ndarray, engaged: np.ndarray, limiting_ne: np.ndarray
     """Climbs caused by false cells: engaged episodes in which, at the step of the largest commanded
     climb, the limiting cell lies on flat true ground (the cell and one cell around it within
     ``FLAT_TOLERANCE_M`` of the datum, as :func:`flat_cells` judges the map) and its mapped height
-    is more than ``FALSE_CELL_M`` above that ground in the navigation's frame of that step: the true ground plus ``frame_offset_m`` (T,), the estimate's
-    altitude minus the true one. The map is built from the estimate's poses, so a cell that holds the
-    ground where the vehicle believes it is, is a true cell however far the estimate has drifted (the
-    altitude figures judge that drift). An unmapped limiting cell standing in for a mapped one
-    (``source_ne``, ``source_map_h``: NaN where none) is judged by that mapped cell: the cell the
-    climb was for. An unmapped limiting cell with no such source was held at a bound of its own (a
-    floor from features not yet converged, or its ceiling) and is judged by the height the law took
-    for it (``limiting_law_h``)."""
+    is more than ``FALSE_CELL_M`` above that ground in the navigation's frame of that step: the true
+    ground plus ``frame_offset_m`` (T,), the estimate's altitude minus the true one. The map is
+    built from the estimate's poses, so a cell that holds the ground where the vehicle believes it
+    is, is a true cell however far the estimate has drifted (the altitude figures judge that drift).
+    An unmapped limiting cell standing in for a mapped one (``source_ne``, ``source_map_h``: NaN
+    where none) is judged by that mapped cell: the cell the climb was for. An unmapped limiting cell
+    with no such source was held at a bound of its own (a floor from features not yet converged, or
+    its ceiling) and is judged by the height the law took for it (``limiting_law_h``)."""
     count = 0
     for a, b in engaged_episodes(engaged):
         k = a + int(np.argmax(climb[a:b + 1]))
